@@ -1,0 +1,77 @@
+"""Network inputs shared by the runtime pipeline and training (one source of truth).
+
+The paper feeds each point as (shifted xyz, normalised location). We scale the shifted xyz by
+the part radius (d_max) so one network serves parts of any size, and we cut the scene into
+spatially coherent blocks (not the reference code's random subsamples) so every block keeps the
+local density the network was trained on. Neighbourhoods are computed once per block with a
+KD-tree on xyz and passed to the network, instead of dense N x N distances in every EdgeConv.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+FEATURE_NAMES = ("x_shift_r", "y_shift_r", "z_shift_r", "nx", "ny", "nz")
+NUM_FEATURES = len(FEATURE_NAMES)
+
+
+def voxel_downsample(xyz: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """One representative input point per occupied voxel.
+
+    Returns ``(keep, inverse)``: ``xyz[keep]`` are the representatives (real points, so the
+    network sees measured geometry) and ``inverse[i]`` is the row of ``keep`` whose voxel holds
+    input point ``i`` -- the index used to carry labels back to every input point.
+    """
+    n = len(xyz)
+    if voxel_size <= 0 or n == 0:
+        return np.arange(n), np.arange(n)
+    cells = np.floor((xyz - xyz.min(axis=0)) / voxel_size).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return keep, inverse.reshape(-1)
+
+
+def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
+    """Split points into disjoint, spatially coherent blocks of at most ``block_size``.
+
+    Recursive median cuts along the longest axis: blocks are compact tiles of similar size, so
+    the network's global max-pool sees a neighbourhood of parts, as in training.
+    """
+    pending = [np.arange(len(xyz))]
+    blocks: list[np.ndarray] = []
+    while pending:
+        idx = pending.pop()
+        if len(idx) <= block_size:
+            if len(idx):
+                blocks.append(idx)
+            continue
+        pts = xyz[idx]
+        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        order = np.argsort(pts[:, axis], kind="stable")
+        half = len(idx) // 2
+        pending.append(idx[order[half:]])
+        pending.append(idx[order[:half]])
+    return blocks
+
+
+def block_features(xyz: np.ndarray, part_radius: float) -> np.ndarray:
+    """(n, 6) float32: xyz shifted to the block minimum and divided by the part radius, then the
+    location normalised to [0, 1] over the block (paper eq. 1 plus the normalised location)."""
+    shifted = xyz - xyz.min(axis=0)
+    extent = np.maximum(shifted.max(axis=0), 1e-9)
+    return np.concatenate([shifted / part_radius, shifted / extent], axis=1).astype(np.float32)
+
+
+def knn_graph(xyz: np.ndarray, k: int) -> np.ndarray:
+    """(n, k) int64 indices of each point's k nearest neighbours in 3D, itself first.
+
+    Blocks smaller than k repeat their farthest neighbour so the graph keeps a fixed width.
+    """
+    n = len(xyz)
+    kk = min(k, n)
+    _, idx = cKDTree(xyz).query(xyz, k=kk)
+    idx = np.asarray(idx, dtype=np.int64).reshape(n, kk)
+    if kk < k:
+        idx = np.concatenate([idx, np.repeat(idx[:, -1:], k - kk, axis=1)], axis=1)
+    return idx
