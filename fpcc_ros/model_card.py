@@ -1,0 +1,134 @@
+"""The model card: the JSON beside every ONNX file that says how to feed it and what it is.
+
+The runtime trusts the card for everything the ONNX graph cannot say (feature normalisation,
+block size, voxel factor, default part radius and NMS settings), so it is validated strictly:
+a card that disagrees with its model is a start-up error, never a silent mis-segmentation.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fpcc_ros.features import FEATURE_NAMES
+
+CARD_FORMAT = "fpcc_ros/model-card/1"
+EMBEDDING_DIM = 128
+
+
+class ModelCardError(ValueError):
+    """A model card that is missing, unreadable or inconsistent."""
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    name: str
+    k: int
+    part_radius: float
+    block_size: int = 4096
+    voxel_factor: float = 0.08
+    screening_factor: float = 1.0
+    score_threshold: float = 0.6
+    feature_gate: float = 1.0
+    embedding_dim: int = EMBEDDING_DIM
+    feature_names: tuple[str, ...] = FEATURE_NAMES
+    description: str = ""
+    trained_on: dict[str, Any] = field(default_factory=dict)
+    training: dict[str, Any] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The on-disk form, with the input/output description spelled out for humans."""
+        body = asdict(self)
+        body["feature_names"] = list(self.feature_names)
+        return {
+            "format": CARD_FORMAT,
+            **body,
+            "inputs": {
+                "features": {
+                    "dtype": "float32",
+                    "shape": ["batch", "points", len(self.feature_names)],
+                    "normalisation": "columns 0-2: xyz minus the block minimum, divided by "
+                    "part_radius; columns 3-5: xyz minus the block minimum, divided by the "
+                    "block extent per axis (0..1). Blocks are spatial tiles of at most "
+                    "block_size points after voxel downsampling at voxel_factor * part_radius.",
+                },
+                "knn": {
+                    "dtype": "int64",
+                    "shape": ["batch", "points", self.k],
+                    "meaning": "indices of the k nearest neighbours in 3D within the block, "
+                    "the point itself first (fpcc_ros.features.knn_graph)",
+                },
+            },
+            "outputs": {
+                "embedding": {"dtype": "float32", "shape": ["batch", "points", self.embedding_dim]},
+                "center_score": {"dtype": "float32", "shape": ["batch", "points"], "range": [0, 1]},
+            },
+        }
+
+    def save(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+
+def card_path_for(model_path: Path) -> Path:
+    return Path(model_path).with_suffix(".json")
+
+
+def load_card(path: Path) -> ModelCard:
+    """Read and validate a card; every problem names the key, the value and the fix."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelCardError(
+            f"model card {path} not found: every .onnx model needs a card JSON with the same "
+            "stem beside it (written by `fpcc export`)")
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelCardError(f"model card {path} is not readable JSON ({exc}); re-export the "
+                             "model with `fpcc export`") from exc
+    if not isinstance(raw, dict) or raw.get("format") != CARD_FORMAT:
+        got = raw.get("format") if isinstance(raw, dict) else type(raw).__name__
+        raise ModelCardError(f"model card {path}: 'format' is {got!r}, expected {CARD_FORMAT!r}; "
+                             "re-export the model with `fpcc export`")
+    known = {f for f in ModelCard.__dataclass_fields__}
+    kwargs = {key: value for key, value in raw.items() if key in known}
+    for required in ("name", "k", "part_radius"):
+        if required not in kwargs:
+            raise ModelCardError(f"model card {path}: missing key {required!r}")
+    if "feature_names" in kwargs:
+        kwargs["feature_names"] = tuple(kwargs["feature_names"])
+    try:
+        card = ModelCard(**kwargs)
+    except TypeError as exc:
+        raise ModelCardError(f"model card {path}: {exc}") from exc
+    _check_values(card, path)
+    return card
+
+
+def _check_values(card: ModelCard, path: Path) -> None:
+    checks = [
+        ("k", card.k, isinstance(card.k, int) and card.k >= 1, "a positive integer"),
+        ("part_radius", card.part_radius, _positive(card.part_radius), "a positive length in metres"),
+        ("block_size", card.block_size, isinstance(card.block_size, int) and card.block_size >= card.k,
+         "an integer >= k"),
+        ("voxel_factor", card.voxel_factor, _number(card.voxel_factor) and card.voxel_factor >= 0,
+         "a number >= 0"),
+        ("screening_factor", card.screening_factor, _positive(card.screening_factor), "> 0"),
+        ("score_threshold", card.score_threshold,
+         _number(card.score_threshold) and 0 <= card.score_threshold < 1, "in [0, 1)"),
+        ("feature_gate", card.feature_gate, _positive(card.feature_gate), "> 0"),
+        ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
+         f"{list(FEATURE_NAMES)} (this runtime's features)"),
+    ]
+    for key, value, ok, expected in checks:
+        if not ok:
+            raise ModelCardError(f"model card {path}: {key}={value!r} is invalid; expected {expected}")
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value
+
+
+def _positive(value: Any) -> bool:
+    return _number(value) and value > 0
