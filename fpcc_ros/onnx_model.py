@@ -1,0 +1,104 @@
+"""onnxruntime session for an exported FPCC-Net plus its model card.
+
+Everything that can be wrong with a model file is found here, at load time, and reported as a
+:class:`ModelLoadError` that says what to fix; the per-frame path then trusts the session.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from fpcc_ros.model_card import ModelCard, ModelCardError, card_path_for, load_card
+
+INPUTS = ("features", "knn")
+OUTPUTS = ("embedding", "center_score")
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "fpcc_default.onnx"
+
+
+class ModelLoadError(RuntimeError):
+    """The model or its card cannot be used; the message says why and what to do."""
+
+
+def default_model_path() -> Path:
+    """The shipped model: beside the sources in a checkout, or in share/ after an install."""
+    if DEFAULT_MODEL.is_file():
+        return DEFAULT_MODEL
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        shared = Path(get_package_share_directory("fpcc_ros")) / "models" / DEFAULT_MODEL.name
+        if shared.is_file():
+            return shared
+    except Exception:  # noqa: BLE001 - no ament index: fall back to the source path
+        pass
+    return DEFAULT_MODEL
+
+
+class FpccModel:
+    """A loaded FPCC-Net: ``run(features, knn) -> (embedding, center_score)``."""
+
+    def __init__(self, path: Path | str, providers: list[str] | None = None, threads: int = 0):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelLoadError(f"model file {self.path} not found; set the 'model' parameter to "
+                                 "an exported .onnx (see `fpcc export`) or leave it empty for the "
+                                 "shipped default")
+        try:
+            self.card: ModelCard = load_card(card_path_for(self.path))
+        except ModelCardError as exc:
+            raise ModelLoadError(str(exc)) from exc
+        self.session = self._open_session(providers or ["CPUExecutionProvider"], threads)
+        self._check_signature()
+
+    @property
+    def active_providers(self) -> list[str]:
+        return self.session.get_providers()
+
+    def _open_session(self, providers: list[str], threads: int) -> ort.InferenceSession:
+        available = ort.get_available_providers()
+        missing = [p for p in providers if p not in available]
+        if missing:
+            raise ModelLoadError(f"providers={missing} are not available in this onnxruntime "
+                                 f"build; available: {available}")
+        options = ort.SessionOptions()
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.intra_op_num_threads = max(0, int(threads))
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        try:
+            return ort.InferenceSession(str(self.path), sess_options=options, providers=providers)
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types
+            raise ModelLoadError(f"model file {self.path} is not a loadable ONNX model ({exc}); "
+                                 "re-export it with `fpcc export`") from exc
+
+    def _check_signature(self) -> None:
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        outputs = {o.name: o for o in self.session.get_outputs()}
+        problems = []
+        if set(inputs) != set(INPUTS):
+            problems.append(f"inputs are {sorted(inputs)}, expected {list(INPUTS)}")
+        if not set(OUTPUTS) <= set(outputs):
+            problems.append(f"outputs are {sorted(outputs)}, expected {list(OUTPUTS)}")
+        if not problems:
+            expected_last = {
+                ("features", len(self.card.feature_names)),
+                ("knn", self.card.k),
+            }
+            for name, dim in expected_last:
+                shape = inputs[name].shape
+                if len(shape) != 3 or (isinstance(shape[-1], int) and shape[-1] != dim):
+                    problems.append(f"input {name!r} has shape {shape}, the card says "
+                                    f"[batch, points, {dim}]")
+            emb = outputs["embedding"].shape
+            if len(emb) != 3 or (isinstance(emb[-1], int) and emb[-1] != self.card.embedding_dim):
+                problems.append(f"output 'embedding' has shape {emb}, the card says "
+                                f"[batch, points, {self.card.embedding_dim}]")
+        if problems:
+            raise ModelLoadError(f"{self.path} is not an FPCC-Net matching its card: "
+                                 + "; ".join(problems) + ". Re-export with `fpcc export`.")
+
+    def run(self, features: np.ndarray, knn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One block (or a batch of equal-sized blocks): (B,N,6), (B,N,K) -> (B,N,128), (B,N)."""
+        embedding, score = self.session.run(list(OUTPUTS), {"features": features, "knn": knn})
+        return embedding, score

@@ -1,0 +1,212 @@
+"""The runtime path from an (N, 3) cloud to instances: pure numpy + onnxruntime, no ROS.
+
+Read :meth:`Pipeline.segment` top to bottom: it is DESIGN.md §1 steps 1-7 in order.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from fpcc_ros.clustering import assign_to_centers
+from fpcc_ros.features import block_features, knn_graph, spatial_blocks, voxel_downsample
+from fpcc_ros.model_card import ModelCard
+from fpcc_ros.nms import nms_centers
+from fpcc_ros.onnx_model import FpccModel
+
+AUTO_VOXEL = -1.0
+
+
+class ConfigError(ValueError):
+    """A pipeline setting out of range; the message names it, its value and the valid range."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Per-frame settings. Every field is also a node parameter of the same name."""
+
+    part_radius: float
+    screening_factor: float = 1.0
+    score_threshold: float = 0.6
+    min_points: int = 50
+    roi_min: tuple[float, float, float] | None = None
+    roi_max: tuple[float, float, float] | None = None
+    voxel_size: float = AUTO_VOXEL
+    feature_gate: float = 1.0
+    voxel_factor: float = 0.08
+    block_size: int = 4096
+
+    @classmethod
+    def from_card(cls, card: ModelCard, **overrides: Any) -> "PipelineConfig":
+        base = cls(part_radius=card.part_radius, screening_factor=card.screening_factor,
+                   score_threshold=card.score_threshold, feature_gate=card.feature_gate,
+                   voxel_factor=card.voxel_factor, block_size=card.block_size)
+        return base.replace(**overrides)
+
+    def replace(self, **changes: Any) -> "PipelineConfig":
+        """A validated copy; raises :class:`ConfigError` and leaves ``self`` untouched."""
+        for key in ("roi_min", "roi_max"):
+            if key in changes and changes[key] is not None:
+                changes[key] = _as_box_corner(key, changes[key])
+        updated = replace(self, **changes)
+        updated.validate()
+        return updated
+
+    @property
+    def effective_voxel_size(self) -> float:
+        if self.voxel_size == AUTO_VOXEL:
+            return self.voxel_factor * self.part_radius
+        return self.voxel_size
+
+    def validate(self) -> None:
+        def need(ok: bool, name: str, rule: str) -> None:
+            if not ok:
+                raise ConfigError(f"{name}={getattr(self, name)!r} is invalid: must be {rule}")
+
+        need(_finite(self.part_radius) and 1e-4 <= self.part_radius <= 10.0, "part_radius",
+             "a part radius d_max in metres between 0.0001 and 10 (see `fpcc part-info`)")
+        need(_finite(self.screening_factor) and 0.05 <= self.screening_factor <= 5.0,
+             "screening_factor", "between 0.05 and 5")
+        need(_finite(self.score_threshold) and 0.0 <= self.score_threshold < 1.0,
+             "score_threshold", "in [0, 1)")
+        need(isinstance(self.min_points, int) and 0 <= self.min_points <= 10_000_000,
+             "min_points", "an integer >= 0")
+        need(_finite(self.voxel_size) and (self.voxel_size >= 0 or self.voxel_size == AUTO_VOXEL),
+             "voxel_size", "0 (off), a size in metres, or -1 (auto: voxel_factor * part_radius)")
+        need(_finite(self.feature_gate) and self.feature_gate > 0, "feature_gate", "> 0")
+        need(isinstance(self.block_size, int) and self.block_size >= 32, "block_size", ">= 32")
+        if (self.roi_min is None) != (self.roi_max is None):
+            raise ConfigError("roi_min and roi_max must be set together (or both empty for no crop)")
+        if self.roi_min is not None and any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
+            raise ConfigError(f"roi_min={list(self.roi_min)} must be below roi_max="
+                              f"{list(self.roi_max)} on every axis")
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _as_box_corner(name: str, value: Any) -> tuple[float, float, float]:
+    values = tuple(float(v) for v in value)
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{name}={list(value)!r} is invalid: must be [x, y, z] in metres, "
+                          "or empty for no crop")
+    return values  # type: ignore[return-value]
+
+
+@dataclass
+class SegmentationResult:
+    """Index-aligned with the input cloud: ``labels[i]`` is input point i's instance (0 = none)."""
+
+    labels: np.ndarray          # (N,) uint32
+    center_score: np.ndarray    # (N,) float32, 0 where no prediction
+    centroids: np.ndarray       # (K, 3) float64, row i is the centroid of label i + 1
+    point_counts: np.ndarray    # (K,) int64
+    num_valid: int
+    num_network_points: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def num_instances(self) -> int:
+        return len(self.centroids)
+
+
+def cluster_points(xyz: np.ndarray, embedding: np.ndarray, center_score: np.ndarray,
+                   config: PipelineConfig) -> np.ndarray:
+    """Steps 5-6 on the network's points: NMS centers, then nearest-center labels 0..K."""
+    centers = nms_centers(xyz, center_score, config.score_threshold,
+                          config.screening_factor * config.part_radius)
+    return assign_to_centers(xyz, embedding, centers, config.part_radius, config.feature_gate)
+
+
+class Pipeline:
+    """A model plus its settings; ``segment(xyz)`` is the whole per-frame job."""
+
+    def __init__(self, model: FpccModel, config: PipelineConfig | None = None):
+        self.model = model
+        self.config = config or PipelineConfig.from_card(model.card)
+
+    def segment(self, xyz: np.ndarray) -> SegmentationResult:
+        cfg = self.config
+        clock = _StageClock()
+        n = len(xyz)
+
+        # 1. valid points: finite xyz inside the optional ROI box
+        valid = np.isfinite(xyz).all(axis=1)
+        if cfg.roi_min is not None:
+            valid &= ((xyz >= cfg.roi_min) & (xyz <= cfg.roi_max)).all(axis=1)
+        valid_idx = np.flatnonzero(valid)
+        pts = xyz[valid_idx].astype(np.float64)
+        clock.lap("valid")
+
+        # 2. voxel downsample; `inverse` carries every valid point to its representative
+        keep, inverse = voxel_downsample(pts, cfg.effective_voxel_size)
+        net_xyz = pts[keep]
+        clock.lap("downsample")
+
+        # 3-4. features per spatial block, FPCC-Net per block
+        embedding = np.zeros((len(net_xyz), self.model.card.embedding_dim), np.float32)
+        score = np.zeros(len(net_xyz), np.float32)
+        for block in spatial_blocks(net_xyz, cfg.block_size) if len(net_xyz) else []:
+            block_xyz = net_xyz[block]
+            feats = block_features(block_xyz, cfg.part_radius)[None]
+            knn = knn_graph(block_xyz, self.model.card.k)[None]
+            clock.lap("features")
+            emb, sc = self.model.run(feats, knn)
+            embedding[block], score[block] = emb[0], sc[0]
+            clock.lap("inference")
+
+        # 5-6. NMS on center scores, nearest center in feature space with the d_max rule
+        net_labels = cluster_points(net_xyz, embedding, score, cfg) if len(net_xyz) else \
+            np.zeros(0, np.int32)
+        clock.lap("cluster")
+
+        # 7. labels back to every input point; drop small instances; centroids
+        labels = np.zeros(n, np.uint32)
+        labels[valid_idx] = net_labels[inverse]
+        labels, counts = _drop_small_instances(labels, cfg.min_points)
+        centroids = _centroids(xyz, labels, len(counts))
+        center_score = np.zeros(n, np.float32)
+        center_score[valid_idx] = score[inverse]
+        clock.lap("labels")
+
+        return SegmentationResult(labels=labels, center_score=center_score, centroids=centroids,
+                                  point_counts=counts, num_valid=len(valid_idx),
+                                  num_network_points=len(net_xyz), timings_ms=clock.laps)
+
+
+def _drop_small_instances(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Zero instances under ``min_points`` input points and renumber the rest 1..K in order."""
+    counts = np.bincount(labels, minlength=1)
+    keep = counts >= max(min_points, 1)
+    keep[0] = False
+    new_id = np.zeros(len(counts), np.uint32)
+    new_id[keep] = np.arange(1, int(keep.sum()) + 1, dtype=np.uint32)
+    return new_id[labels], counts[keep].astype(np.int64)
+
+
+def _centroids(xyz: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    if k == 0:
+        return np.zeros((0, 3))
+    mask = labels > 0
+    lab = labels[mask]
+    pts = xyz[mask].astype(np.float64)
+    counts = np.bincount(lab, minlength=k + 1)[1:]
+    sums = np.stack([np.bincount(lab, weights=pts[:, d], minlength=k + 1)[1:] for d in range(3)], 1)
+    return sums / counts[:, None]
+
+
+class _StageClock:
+    """Accumulates wall time per named stage (stages may repeat, e.g. once per block)."""
+
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.laps[stage] = self.laps.get(stage, 0.0) + (now - self._last) * 1e3
+        self._last = now
