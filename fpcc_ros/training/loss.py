@@ -1,0 +1,110 @@
+"""FPCC loss (paper Sec. Training phase): L = L_EF + alpha * L_CS.
+
+Each matrix of the paper is one small function on a single block (N points), so each can be
+checked by hand. Choices where the paper and the reference code differ:
+
+* D_F is the L2 feature distance (paper), not the squared distance (reference code). The square
+  root gets a small epsilon so its gradient stays finite for identical embeddings.
+* Same-instance pairs have weight 1 in the hinge (paper), not 2 (reference code).
+* Background points (instance 0) are "different" from every point, themselves included, so they
+  are pushed away from the part centers; background-background pairs have ASM weight 0 anyway
+  (their center scores are 0), so they never contribute.
+* Normalisation: the paper writes a plain sum; the reference divides by all B*N*N pairs. We
+  divide by the number of valid pairs (sum of the VDM), i.e. L_EF is the mean weighted hinge over
+  pairs closer than 2 d_max. That keeps L_EF's scale independent of how large a block is in
+  metres (block_size, voxel size, part size change the fraction of valid pairs by several times),
+  so alpha = 3 means the same balance whatever the block size we train with. In practice L_EF
+  starts around 0.3-0.5 and alpha * L_CS around 0.05-0.1 (see the training CSV).
+"""
+from __future__ import annotations
+
+import torch
+import torch.utils.checkpoint
+import torch.nn.functional as F
+
+EPS1 = 0.5
+EPS2 = 1.0
+ALPHA = 3.0
+_SQRT_EPS = 1e-8
+
+
+def feature_distance(embedding: torch.Tensor) -> torch.Tensor:
+    """D_F (N, N): L2 distances between the rows of ``embedding`` (N, C), gradient-safe at 0."""
+    sq_norm = (embedding * embedding).sum(dim=-1)
+    sq = sq_norm[:, None] + sq_norm[None, :] - 2.0 * embedding @ embedding.T
+    return torch.sqrt(sq.clamp_min(0.0) + _SQRT_EPS)
+
+
+def valid_distance_mask(xyz: torch.Tensor, d_max: float) -> torch.Tensor:
+    """D_V (N, N) bool: pairs closer than 2 d_max in 3D (metres); farther pairs cannot share a part."""
+    return torch.cdist(xyz, xyz) < 2.0 * d_max
+
+
+def attention_scores(center_score: torch.Tensor) -> torch.Tensor:
+    """S_A (N, N) = min(1, s_i + s_j) from ground-truth center scores: pairs near a center count most."""
+    return (center_score[:, None] + center_score[None, :]).clamp_max(1.0)
+
+
+def same_instance(instance: torch.Tensor) -> torch.Tensor:
+    """(N, N) bool: both points on the same part. Background (0) matches nothing, not even itself."""
+    return (instance[:, None] == instance[None, :]) & (instance[:, None] > 0)
+
+
+def pair_hinge(distance: torch.Tensor, same: torch.Tensor, eps1: float = EPS1,
+               eps2: float = EPS2) -> torch.Tensor:
+    """kappa (N, N): max(0, D - eps1) for same-instance pairs, max(0, eps2 - D) otherwise."""
+    return torch.where(same, F.relu(distance - eps1), F.relu(eps2 - distance))
+
+
+def embedding_loss(embedding: torch.Tensor, xyz: torch.Tensor, instance: torch.Tensor,
+                   center_score: torch.Tensor, d_max: float, eps1: float = EPS1,
+                   eps2: float = EPS2) -> torch.Tensor:
+    """L_EF of one block: sum(D_V * S_A * kappa) / sum(D_V).
+
+    ``embedding`` (N, C) predicted; ``xyz`` (N, 3) metres, ``instance`` (N,) and ``center_score``
+    (N,) ground truth; ``d_max`` the part radius in metres.
+    """
+    valid = valid_distance_mask(xyz, d_max)
+    weight = torch.where(valid, attention_scores(center_score), 0.0)
+    kappa = pair_hinge(feature_distance(embedding), same_instance(instance), eps1, eps2)
+    return (weight * kappa).sum() / valid.sum().clamp_min(1)
+
+
+def smooth_l1(x: torch.Tensor) -> torch.Tensor:
+    """0.5 x^2 where |x| < 1, |x| - 0.5 elsewhere (elementwise)."""
+    ax = x.abs()
+    return torch.where(ax < 1.0, 0.5 * x * x, ax - 0.5)
+
+
+def center_loss(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_CS = mean smooth-L1(s - s_hat) over the points given."""
+    return smooth_l1(target - predicted).mean()
+
+
+def total_loss(loss_ef: torch.Tensor, loss_cs: torch.Tensor, alpha: float = ALPHA) -> torch.Tensor:
+    """L = L_EF + alpha L_CS."""
+    return loss_ef + alpha * loss_cs
+
+
+def batch_loss(embedding: torch.Tensor, center_score: torch.Tensor, batch: dict[str, torch.Tensor],
+               alpha: float = ALPHA, eps1: float = EPS1, eps2: float = EPS2,
+               checkpoint: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(L, L_EF, L_CS) of a collated batch (see dataset.collate): L_EF averaged over blocks,
+    L_CS over all real points; padded rows (``valid`` False) are left out of both.
+
+    With ``checkpoint`` each block's N x N matrices are recomputed in the backward pass instead
+    of being kept, so memory holds one block's matrices at a time (~0.4 GB at N = 4096).
+    """
+    valid = batch["valid"]
+    ef_terms = []
+    for b in range(embedding.shape[0]):
+        rows = valid[b]
+        args = (embedding[b][rows], batch["xyz"][b][rows], batch["instance"][b][rows],
+                batch["center_score"][b][rows], float(batch["part_radius"][b]), eps1, eps2)
+        if checkpoint and torch.is_grad_enabled():
+            ef_terms.append(torch.utils.checkpoint.checkpoint(embedding_loss, *args, use_reentrant=False))
+        else:
+            ef_terms.append(embedding_loss(*args))
+    loss_ef = torch.stack(ef_terms).mean()
+    loss_cs = center_loss(center_score[valid], batch["center_score"][valid])
+    return total_loss(loss_ef, loss_cs, alpha), loss_ef, loss_cs

@@ -1,0 +1,152 @@
+"""FPCC loss terms on tiny cases whose expected values are worked out by hand in the comments."""
+import math
+
+import pytest
+import torch
+
+from fpcc_ros.training.loss import (attention_scores, batch_loss, center_loss, embedding_loss,
+                                    feature_distance, pair_hinge, same_instance, smooth_l1,
+                                    total_loss, valid_distance_mask)
+
+# Three points with 1-D embeddings 0, 0.8, 0.3 -> feature distances d01 = 0.8, d02 = 0.3, d12 = 0.5.
+EMB = torch.tensor([[0.0], [0.8], [0.3]])
+
+
+def test_feature_distance_is_l2_not_squared():
+    d = feature_distance(EMB)
+    expected = torch.tensor([[0.0, 0.8, 0.3], [0.8, 0.0, 0.5], [0.3, 0.5, 0.0]])
+    torch.testing.assert_close(d, expected, atol=2e-4, rtol=0)  # diagonal is sqrt(1e-8) = 1e-4
+    # 2-D: (0,0)-(3,4) is 5 (a squared distance would be 25)
+    d2 = feature_distance(torch.tensor([[0.0, 0.0], [3.0, 4.0]]))
+    assert d2[0, 1].item() == pytest.approx(5.0, abs=1e-4)
+
+
+def test_feature_distance_gradient_finite_for_identical_embeddings():
+    emb = torch.ones(3, 4, requires_grad=True)
+    feature_distance(emb).sum().backward()
+    assert torch.isfinite(emb.grad).all()
+
+
+def test_valid_distance_mask_strictly_below_two_d_max():
+    xyz = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.22, 0.0, 0.0]])
+    # d_max 0.1 -> pairs closer than 0.2 count: |01| = 0.05 yes, |12| = 0.17 yes, |02| = 0.22 no
+    got = valid_distance_mask(xyz, 0.1)
+    assert got.tolist() == [[True, True, False], [True, True, True], [False, True, True]]
+
+
+def test_attention_scores_clip_at_one():
+    s = torch.tensor([0.2, 0.5, 0.9])
+    expected = torch.tensor([[0.4, 0.7, 1.0], [0.7, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    torch.testing.assert_close(attention_scores(s), expected)
+
+
+def test_same_instance_background_matches_nothing():
+    inst = torch.tensor([1, 1, 2, 0, 0])
+    got = same_instance(inst)
+    assert got.tolist() == [
+        [True, True, False, False, False],
+        [True, True, False, False, False],
+        [False, False, True, False, False],
+        [False, False, False, False, False],   # background vs background, even itself: different
+        [False, False, False, False, False],
+    ]
+
+
+def test_pair_hinge_both_branches():
+    d = torch.tensor([[0.3, 0.8], [0.8, 1.4]])
+    same = torch.tensor([[True, True], [False, False]])
+    # same: max(0, 0.3 - 0.5) = 0, max(0, 0.8 - 0.5) = 0.3; different: max(0, 1 - 0.8) = 0.2, max(0, 1 - 1.4) = 0
+    torch.testing.assert_close(pair_hinge(d, same), torch.tensor([[0.0, 0.3], [0.2, 0.0]]))
+    # other margins: same 0.8 - 0.7 = 0.1; different 2 - 0.8 = 1.2 and 2 - 1.4 = 0.6
+    torch.testing.assert_close(pair_hinge(d, same, eps1=0.7, eps2=2.0), torch.tensor([[0.0, 0.1], [1.2, 0.6]]))
+
+
+def test_embedding_loss_hand_case():
+    xyz = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.22, 0.0, 0.0]])
+    inst = torch.tensor([1, 1, 2])
+    s = torch.tensor([0.2, 0.5, 0.9])
+    # valid pairs (d_max 0.1): 3 diagonal + (0,1),(1,0) + (1,2),(2,1) = 7
+    # (0,1) same,      d = 0.8: hinge 0.3, ASM min(1, 0.7) = 0.7 -> 0.21, twice
+    # (1,2) different, d = 0.5: hinge 0.5, ASM min(1, 1.4) = 1   -> 0.5,  twice
+    # (0,2) invalid (0.22 >= 0.2); diagonal: same instance, d ~ 0 -> hinge 0
+    expected = (2 * 0.21 + 2 * 0.5) / 7
+    got = embedding_loss(EMB, xyz, inst, s, d_max=0.1)
+    assert got.item() == pytest.approx(expected, abs=1e-5)
+
+
+def test_embedding_loss_background():
+    # point 2 is background with score 0; points 0 and 1 are one part.
+    emb = torch.tensor([[0.0], [0.2], [0.6]])
+    xyz = torch.zeros(3, 3)  # all pairs valid: 9 pairs
+    inst = torch.tensor([1, 1, 0])
+    s = torch.tensor([0.6, 0.3, 0.0])
+    # (0,1) same, d 0.2 < 0.5 -> 0
+    # (0,2) different, d 0.6: hinge 0.4, ASM 0.6 -> 0.24, twice
+    # (1,2) different, d 0.4: hinge 0.6, ASM 0.3 -> 0.18, twice
+    # (2,2) background with itself: "different", hinge ~1, but ASM = min(1, 0 + 0) = 0 -> 0
+    # (0,0): ASM 1, same, hinge 0; (1,1): same -> 0
+    expected = (2 * 0.24 + 2 * 0.18) / 9
+    got = embedding_loss(emb, xyz, inst, s, d_max=0.1)
+    assert got.item() == pytest.approx(expected, abs=1e-5)
+
+
+def test_smooth_l1_both_branches():
+    x = torch.tensor([0.5, -0.5, 0.0, 1.0, -2.0, 3.0])
+    # |x| < 1: 0.5 x^2 -> 0.125, 0.125, 0; |x| >= 1: |x| - 0.5 -> 0.5, 1.5, 2.5
+    torch.testing.assert_close(smooth_l1(x), torch.tensor([0.125, 0.125, 0.0, 0.5, 1.5, 2.5]))
+
+
+def test_center_loss_is_mean():
+    pred = torch.tensor([0.5, 0.9, 0.0, 0.2])
+    target = torch.tensor([0.1, 0.9, 1.0, 0.0])
+    # diffs 0.4, 0, 1, 0.2 -> 0.08, 0, 0.5, 0.02; mean 0.15
+    assert center_loss(pred, target).item() == pytest.approx(0.15, abs=1e-6)
+
+
+def test_total_loss_alpha_weighting():
+    ef, cs = torch.tensor(0.2), torch.tensor(0.1)
+    assert total_loss(ef, cs).item() == pytest.approx(0.5)           # default alpha = 3
+    assert total_loss(ef, cs, alpha=1.0).item() == pytest.approx(0.3)
+
+
+def _batch(emb, xyz, inst, s, pred_s, valid, radius):
+    return emb, pred_s, {"xyz": xyz, "instance": inst, "center_score": s, "valid": valid,
+                         "part_radius": torch.tensor(radius)}
+
+
+def test_batch_loss_ignores_padding_and_averages_blocks():
+    xyz = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.22, 0.0, 0.0]])
+    inst = torch.tensor([1, 1, 2])
+    s = torch.tensor([0.2, 0.5, 0.9])
+    pred = torch.tensor([0.2, 0.5, 0.4])   # center errors 0, 0, 0.5 -> smooth-L1 0.125 on one point
+    ef_hand = (2 * 0.21 + 2 * 0.5) / 7
+    # block 0: the hand case plus a padded garbage row; block 1: the hand case with rows reversed
+    pad = lambda t, v: torch.cat([t, v[None]])  # noqa: E731
+    emb, pred_s, batch = _batch(
+        torch.stack([pad(EMB, torch.tensor([9.0])), pad(EMB.flip(0), torch.tensor([-9.0]))]),
+        torch.stack([pad(xyz, torch.zeros(3)), pad(xyz.flip(0), torch.zeros(3))]),
+        torch.stack([pad(inst, torch.tensor(1)), pad(inst.flip(0), torch.tensor(2))]),
+        torch.stack([pad(s, torch.tensor(1.0)), pad(s.flip(0), torch.tensor(1.0))]),
+        torch.stack([pad(pred, torch.tensor(0.0)), pad(pred.flip(0), torch.tensor(0.0))]),
+        torch.tensor([[True, True, True, False], [True, True, True, False]]), [0.1, 0.1])
+    total, ef, cs = batch_loss(emb, pred_s, batch, checkpoint=False)
+    assert ef.item() == pytest.approx(ef_hand, abs=1e-5)
+    assert cs.item() == pytest.approx(2 * 0.125 / 6, abs=1e-6)
+    assert total.item() == pytest.approx(ef_hand + 3 * 2 * 0.125 / 6, abs=1e-5)
+
+
+def test_batch_loss_checkpointing_keeps_gradients():
+    torch.manual_seed(0)
+    emb = torch.randn(2, 10, 4)
+    pred = torch.rand(2, 10)
+    batch = {"xyz": torch.rand(2, 10, 3) * 0.1, "instance": torch.randint(0, 3, (2, 10)),
+             "center_score": torch.rand(2, 10), "valid": torch.ones(2, 10, dtype=torch.bool),
+             "part_radius": torch.tensor([0.03, 0.05])}
+    grads = []
+    for ckpt in (False, True):
+        e, p = emb.clone().requires_grad_(), pred.clone().requires_grad_()
+        batch_loss(e, p, batch, checkpoint=ckpt)[0].backward()
+        grads.append((e.grad, p.grad))
+    torch.testing.assert_close(grads[0][0], grads[1][0])
+    torch.testing.assert_close(grads[0][1], grads[1][1])
+    assert not math.isnan(grads[0][0].sum().item())
