@@ -1,0 +1,61 @@
+"""`fpcc train`: train FPCC-Net on scene NPZ files (see fpcc_ros.training.train)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from fpcc_ros.training.model import TINY, NetConfig
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", nargs="+", default=[], metavar="DIR",
+                        help="folders (or files) of scene NPZ files to train on (with --resume: "
+                        "default the run's own)")
+    parser.add_argument("--val", nargs="+", default=[], metavar="DIR",
+                        help="folders of validation scenes (precision/recall per epoch)")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR",
+                        help="run folder: checkpoints, history.csv, history.png")
+    parser.add_argument("--epochs", type=int, default=30)
+    parser.add_argument("--init", default=None, metavar="MODEL",
+                        help="start from weights: a .pt checkpoint, an exported .onnx (uses the .pt "
+                        "beside it), or 'default' (models/fpcc_default.pt)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue RUN_DIR/checkpoint_last.pt (same data, same batches)")
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--weight-decay", type=float, default=1e-4)
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--block-size", type=int, default=4096,
+                        help="points per block (smaller trains faster; the card records it)")
+    parser.add_argument("--k", type=int, default=16, help="neighbours per point in the kNN graph")
+    parser.add_argument("--voxel-factor", type=float, default=0.08,
+                        help="voxel size as a fraction of the part radius")
+    parser.add_argument("--alpha", type=float, default=3.0, help="weight of the center-score loss")
+    parser.add_argument("--no-augment", action="store_true",
+                        help="no rotation / scale / voxel-size / dropout augmentation")
+    parser.add_argument("--net", choices=("full", "tiny"), default="full",
+                        help="layer widths: the paper's, or a tiny net for tests")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--time-limit", type=float, default=0.0, metavar="MIN",
+                        help="stop cleanly (checkpoint saved) after MIN minutes; 0 = no limit")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fpcc_ros.training.dataset import DataConfig
+    from fpcc_ros.training.train import TrainConfig, train
+
+    config = TrainConfig(
+        epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
+        alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
+        time_limit_min=args.time_limit,
+        data=DataConfig(k=args.k, block_size=args.block_size, voxel_factor=args.voxel_factor),
+        net=TINY if args.net == "tiny" else NetConfig())
+    try:
+        summary = train(config, args.data, args.out, val=args.val, init=args.init,
+                        resume=args.resume, command=sys.argv)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"fpcc train: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary, indent=2))
+    return 0

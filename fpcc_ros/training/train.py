@@ -1,0 +1,402 @@
+"""Train FPCC-Net on scene NPZ files: Adam, cosine learning rate, checkpoints, validation.
+
+A run directory holds ``checkpoint_last.pt`` (written every epoch and when ``time_limit_min``
+stops the run mid-epoch), ``checkpoint_best.pt``, ``history.csv`` and ``history.png``.
+Checkpoints hold only tensors and plain Python values, so they load with
+``torch.load(weights_only=True)``; batches are seeded by (seed, epoch), so a resumed run continues
+exactly where it stopped, mid-epoch included.
+
+Validation runs the model on every block of each validation scene, gathers the embedding and
+center score per downsampled point and hands them to a ``postprocess`` callable that returns a
+label per scene point: by default the runtime's own clustering (``runtime_postprocess``), scored
+with fpcc_ros.metrics.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
+    load_scene, scene_blocks
+from fpcc_ros.training.loss import ALPHA, EPS1, EPS2, batch_loss
+from fpcc_ros.training.model import FPCCNet, NetConfig
+
+CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
+DEFAULT_INIT = Path(__file__).resolve().parents[2] / "models" / "fpcc_default.pt"
+_now = time.monotonic  # the run's clock (tests replace it)
+HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "val_loss", "val_loss_ef",
+                  "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
+                  "val_precision_paper", "val_recall_paper", "seconds")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    epochs: int = 30
+    lr: float = 1e-3
+    min_lr_fraction: float = 0.01
+    weight_decay: float = 1e-4
+    batch: int = 4
+    alpha: float = ALPHA
+    eps1: float = EPS1
+    eps2: float = EPS2
+    augment: bool = True
+    seed: int = 0
+    threads: int = 2
+    time_limit_min: float = 0.0
+    score_threshold: float = 0.6
+    screening_factor: float = 1.0
+    feature_gate: float = 1.0
+    min_points: int = 50
+    data: DataConfig = DataConfig()
+    net: NetConfig = NetConfig()
+
+    def to_dict(self) -> dict[str, Any]:
+        body = {k: v for k, v in asdict(self).items() if k not in ("data", "net")}
+        body["data"] = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self.data).items()}
+        body["net"] = self.net.to_dict()
+        return body
+
+    @classmethod
+    def from_dict(cls, body: dict[str, Any]) -> "TrainConfig":
+        body = dict(body)
+        data = {k: tuple(v) if isinstance(v, list) else v for k, v in body.pop("data", {}).items()}
+        net = NetConfig.from_dict(body.pop("net", {}))
+        known = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in body.items() if k in known}, data=DataConfig(**data), net=net)
+
+
+@dataclass
+class ScenePrediction:
+    """Network outputs for one scene: per downsampled point (rows of ``xyz``, which are scene rows
+    ``rep``), and ``inverse`` mapping every scene point to its downsampled row."""
+
+    rep: np.ndarray
+    inverse: np.ndarray
+    xyz: np.ndarray
+    embedding: np.ndarray
+    center_score: np.ndarray
+
+
+Postprocess = Callable[[Scene, ScenePrediction, TrainConfig], np.ndarray]
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+def lr_at(config: TrainConfig, epoch: int) -> float:
+    """Cosine decay from lr to lr * min_lr_fraction over the configured epochs."""
+    frac = min(epoch / max(config.epochs, 1), 1.0)
+    low = config.lr * config.min_lr_fraction
+    return low + 0.5 * (config.lr - low) * (1 + math.cos(math.pi * frac))
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A checkpoint or weights file (tensors and plain values only)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or "model" not in state:
+        raise ValueError(f"{path} is not an fpcc_ros checkpoint (no 'model' entry); use a "
+                         "checkpoint_*.pt from `fpcc train` or the .pt written beside an exported model")
+    return state
+
+
+def model_from_checkpoint(state: dict[str, Any]) -> FPCCNet:
+    model = FPCCNet(NetConfig.from_dict(state.get("net", {})))
+    model.load_state_dict(state["model"])
+    return model
+
+
+def resolve_init(init: str | Path) -> Path | None:
+    """The .pt an ``--init`` names: a .pt itself, the .pt beside an .onnx/.json model, or
+    ``default`` (models/fpcc_default.pt; None when it does not exist yet)."""
+    if str(init) == "default":
+        return DEFAULT_INIT if DEFAULT_INIT.is_file() else None
+    path = Path(init)
+    if path.suffix in (".onnx", ".json"):
+        pt = path.with_suffix(".pt")
+        if not pt.is_file():
+            raise FileNotFoundError(f"--init {path}: no torch weights {pt} beside it; `fpcc export` "
+                                    "writes them, ONNX weights cannot be trained further")
+        return pt
+    return path
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars -> Python numbers, recursively (weights_only checkpoints need plain types)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+# ----------------------------------------------------------------------------- validation
+
+@torch.no_grad()
+def predict_scene(model: FPCCNet, scene: Scene, data: DataConfig) -> ScenePrediction:
+    """Run the model on every block of a scene (no augmentation), as the runtime does."""
+    model.eval()
+    cut = scene_blocks(scene, data, rng=None, skip_empty=False)
+    n = len(cut.rep)
+    embedding = np.zeros((n, model.config.embedding_dim), np.float32)
+    score = np.zeros(n, np.float32)
+    for block in cut.blocks:
+        emb, s = model(torch.from_numpy(block.features)[None], torch.from_numpy(block.knn)[None])
+        embedding[block.index], score[block.index] = emb[0].numpy(), s[0].numpy()
+    return ScenePrediction(cut.rep, cut.inverse, scene.xyz[cut.rep], embedding, score)
+
+
+def runtime_postprocess(scene: Scene, pred: ScenePrediction, config: TrainConfig) -> np.ndarray:
+    """Labels per scene point from the runtime's own clustering (fpcc_ros.pipeline.cluster_points:
+    NMS on center scores, nearest center in feature space, d_max and feature gates), then the
+    runtime's ``min_points`` rule (instances with fewer input points get label 0)."""
+    from fpcc_ros.pipeline import PipelineConfig, cluster_points
+
+    runtime = PipelineConfig(part_radius=scene.part_radius, screening_factor=config.screening_factor,
+                             score_threshold=config.score_threshold, feature_gate=config.feature_gate,
+                             voxel_factor=config.data.voxel_factor, block_size=config.data.block_size,
+                             min_points=config.min_points)
+    labels = cluster_points(pred.xyz, pred.embedding, pred.center_score, runtime)[pred.inverse]
+    small = np.bincount(labels) < max(runtime.min_points, 1)
+    small[0] = False
+    return np.where(small[labels], 0, labels).astype(np.int32)
+
+
+@torch.no_grad()
+def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
+             postprocess: Postprocess | None = runtime_postprocess) -> dict[str, float]:
+    """Validation loss on unaugmented blocks, center-score MAE per downsampled point and, with
+    ``postprocess``, precision / recall / MUCov at IoU 0.5 summed over the scenes
+    (fpcc_ros.metrics; ``val_precision``/``val_recall`` use the visible protocol, ``*_paper``
+    count every ground-truth instance)."""
+    from fpcc_ros.metrics import InstanceCounts, scene_counts, visible_threshold
+
+    model.eval()
+    losses, abs_err, n_pts = [], 0.0, 0
+    visible, paper = InstanceCounts(), InstanceCounts()
+    for scene in scenes:
+        for block in scene_blocks(scene, config.data, rng=None, skip_empty=True).blocks:
+            batch = collate([block])
+            emb, s = model(batch["features"], batch["knn"])
+            losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1,
+                                                        config.eps2, checkpoint=False)])
+        pred = predict_scene(model, scene, config.data)
+        abs_err += float(np.abs(pred.center_score - scene.center_score[pred.rep]).sum())
+        n_pts += len(pred.rep)
+        if postprocess is not None:
+            labels = postprocess(scene, pred, config)
+            visible += scene_counts(labels, scene.instance, "visible",
+                                    visible_threshold(scene.num_pixels))
+            paper += scene_counts(labels, scene.instance, "paper")
+    out: dict[str, float] = {}
+    if losses:
+        out["val_loss"], out["val_loss_ef"], out["val_loss_cs"] = map(float, np.mean(losses, axis=0))
+    if n_pts:
+        out["val_center_mae"] = abs_err / n_pts
+    if postprocess is not None and scenes:
+        out.update(val_precision=visible.precision, val_recall=visible.recall, val_mucov=visible.mucov,
+                   val_precision_paper=paper.precision, val_recall_paper=paper.recall)
+    return out
+
+
+# ----------------------------------------------------------------------------- history
+
+def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:
+    """history.csv and history.png (losses and validation metrics per epoch)."""
+    with open(run_dir / "history.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=HISTORY_FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(history)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    epochs = [h["epoch"] for h in history]
+    for key in ("loss", "loss_ef", "loss_cs", "val_loss"):
+        if any(key in h for h in history):
+            ax1.plot(epochs, [h.get(key, np.nan) for h in history], marker=".", label=key)
+    ax1.set_xlabel("epoch"), ax1.set_ylabel("loss")
+    for key in ("val_precision", "val_recall", "val_center_mae"):
+        if any(key in h for h in history):
+            ax2.plot(epochs, [h.get(key, np.nan) for h in history], marker=".", label=key)
+    ax2.set_xlabel("epoch"), ax2.set_ylim(0, 1)
+    for ax in (ax1, ax2):
+        if ax.get_lines():
+            ax.legend()
+    fig.tight_layout()
+    fig.savefig(run_dir / "history.png", dpi=80)
+    plt.close(fig)
+
+
+def _score(row: dict[str, Any]) -> float:
+    """Higher is better: validation F1 when measured, else minus a loss."""
+    if "val_precision" in row:
+        p, r = row["val_precision"], row["val_recall"]
+        return 2 * p * r / (p + r) if p + r else 0.0
+    return -row.get("val_loss", row["loss"])
+
+
+# ----------------------------------------------------------------------------- training
+
+def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str | Path,
+          val: Sequence[str | Path] = (), init: str | Path | None = None, resume: bool = False,
+          postprocess: Postprocess | None = runtime_postprocess, progress: bool = True,
+          command: Sequence[str] | None = None) -> dict[str, Any]:
+    """Train (or resume) a run; returns a summary: status ('done' or 'time_limit'), epochs done,
+    last history row and the checkpoint paths.
+
+    ``resume`` continues ``run_dir/checkpoint_last.pt`` with its saved configuration (only
+    ``epochs``, ``time_limit_min`` and ``threads`` come from ``config``) and, when ``data`` / ``val``
+    are empty, its saved scene folders. ``init`` (ignored when resuming) names starting weights
+    (see ``resolve_init``); the network widths then follow the init weights."""
+    from tqdm import tqdm
+
+    start_time = _now()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    last_path, best_path = run_dir / "checkpoint_last.pt", run_dir / "checkpoint_best.pt"
+    state: dict[str, Any] | None = None
+    if resume:
+        if not last_path.is_file():
+            raise FileNotFoundError(f"--resume: {last_path} not found; start without --resume")
+        state = load_checkpoint(last_path)
+        data = data or state["trained_on"]["data"]
+        val = val or state["trained_on"]["validation"]
+        saved = TrainConfig.from_dict(state["config"])
+        config = replace(saved, epochs=config.epochs, time_limit_min=config.time_limit_min,
+                         threads=config.threads)
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+
+    init_state = None
+    if state is None and init is not None:
+        init_path = resolve_init(init)
+        if init_path is None:
+            print(f"--init default: {DEFAULT_INIT} does not exist yet; starting from random weights",
+                  file=sys.stderr)
+        else:
+            init_state = load_checkpoint(init_path)
+            config = replace(config, net=NetConfig.from_dict(init_state.get("net", {})))
+    model = FPCCNet(config.net)
+    if init_state is not None:
+        model.load_state_dict(init_state["model"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+
+    if not data:
+        raise ValueError("no training data: pass --data with folders of scene NPZ files")
+    train_paths, val_paths = find_scenes(data), find_scenes(val) if val else []
+    dataset = BlockDataset(train_paths, config.data, augment=config.augment, seed=config.seed)
+    val_scenes = [load_scene(p) for p in val_paths]
+    radii = sorted({s.part_radius for s in dataset.scenes})
+    trained_on = {"data": [str(d) for d in data], "validation": [str(v) for v in val],
+                  "part_names": sorted({s.part_name for s in dataset.scenes if s.part_name}),
+                  "num_scenes": len(train_paths), "num_val_scenes": len(val_paths),
+                  "part_radius": float(np.median([s.part_radius for s in dataset.scenes])),
+                  "part_radii": radii[:20]}
+
+    epoch, skip, history, best = 0, 0, [], -math.inf
+    sums = {"loss": 0.0, "loss_ef": 0.0, "loss_cs": 0.0, "steps": 0}
+    wall_before = 0.0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        epoch, skip, history = state["epoch"], state["step"], list(state["history"])
+        sums, best, wall_before = dict(state["partial"]), state["best_score"], state["wall_time_s"]
+        torch.set_rng_state(state["torch_rng"])
+    command = list(command) if command is not None else list(sys.argv)
+
+    def save(path: Path, step: int) -> None:
+        torch.save(_plain_state(model, optimizer, config, epoch, step, sums, history, best,
+                                trained_on, command, wall_before + _now() - start_time),
+                   path)
+
+    def out_of_time() -> bool:
+        return config.time_limit_min > 0 and _now() - start_time > 60 * config.time_limit_min
+
+    status = "done"
+    while epoch < config.epochs:
+        epoch_start = _now()
+        lr = lr_at(config, epoch)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        groups = dataset.batches(epoch, config.batch)
+        model.train()
+        bar = tqdm(groups, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress,
+                   initial=skip, total=len(groups), leave=False)
+        for step in range(skip, len(groups)):
+            if out_of_time():
+                status = "time_limit"
+                save(last_path, step)
+                bar.close()
+                break
+            batch = collate(groups[step])
+            embedding, score = model(batch["features"], batch["knn"])
+            loss, loss_ef, loss_cs = batch_loss(embedding, score, batch, config.alpha,
+                                                config.eps1, config.eps2)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            for key, value in (("loss", loss), ("loss_ef", loss_ef), ("loss_cs", loss_cs)):
+                sums[key] += value.item()
+            sums["steps"] += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{sums['loss'] / sums['steps']:.4f}")
+        else:
+            bar.close()
+        if status == "time_limit":
+            break
+        steps = max(sums["steps"], 1)
+        row = {"epoch": epoch + 1, "lr": lr, **{k: sums[k] / steps for k in ("loss", "loss_ef", "loss_cs")}}
+        if val_scenes:
+            row.update(validate(model, val_scenes, config, postprocess))
+        row["seconds"] = _now() - epoch_start
+        history.append(_plain(row))
+        write_history(run_dir, history)
+        epoch, skip = epoch + 1, 0
+        sums = {"loss": 0.0, "loss_ef": 0.0, "loss_cs": 0.0, "steps": 0}
+        improved = _score(row) > best
+        best = max(best, _score(row))
+        save(last_path, 0)
+        if improved:
+            save(best_path, 0)
+        if progress:
+            print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+                  file=sys.stderr)
+        if out_of_time() and epoch < config.epochs:
+            status = "time_limit"
+            break
+    return {"status": status, "epochs_done": epoch, "last": history[-1] if history else None,
+            "checkpoint_last": str(last_path), "checkpoint_best": str(best_path),
+            "wall_time_s": wall_before + _now() - start_time}
+
+
+def _plain_state(model: FPCCNet, optimizer: torch.optim.Optimizer, config: TrainConfig, epoch: int,
+                 step: int, sums: dict, history: list, best: float, trained_on: dict,
+                 command: list[str], wall_time_s: float) -> dict[str, Any]:
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "net": model.config.to_dict(),
+        "config": config.to_dict(),
+        "epoch": int(epoch),
+        "step": int(step),
+        "partial": _plain(sums),
+        "history": _plain(history),
+        "best_score": float(best),
+        "trained_on": _plain(trained_on),
+        "command": [str(c) for c in command],
+        "wall_time_s": float(wall_time_s),
+        "torch_rng": torch.get_rng_state(),
+    }

@@ -1,0 +1,163 @@
+"""End to end on tiny synthetic scenes: overfit, train, resume, time limit, export, onnxruntime."""
+import csv
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+import fpcc_ros.training.train as train_mod
+from fpcc_ros.cli import main as fpcc
+from fpcc_ros.model_card import card_path_for, load_card
+from fpcc_ros.training.dataset import DataConfig, collate, load_scene, scene_blocks
+from fpcc_ros.training.export import check_onnx, export_onnx, export_untrained
+from fpcc_ros.training.loss import batch_loss
+from fpcc_ros.training.model import TINY, FPCCNet
+from fpcc_ros.training.train import TrainConfig, load_checkpoint, model_from_checkpoint, resolve_init, train
+from test_dataset import A, write_fake_scenes
+
+SMALL = DataConfig(k=8, block_size=256, voxel_factor=0.15)
+TINY_CONFIG = TrainConfig(epochs=1, batch=4, data=SMALL, net=TINY, threads=2)
+TRAIN_ARGS = ["--net", "tiny", "--k", "8", "--block-size", "256", "--voxel-factor", "0.15",
+              "--threads", "2"]
+COMMITTED = Path(__file__).parent / "data" / "tiny_fpcc.onnx"
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scenes")
+    write_fake_scenes(root / "train", count=3)
+    write_fake_scenes(root / "val", count=1, organised_first=False)
+    return root
+
+
+def _ort(path):
+    return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+
+
+def _history(run):
+    with open(run / "history.csv") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_overfit_one_block(scenes):
+    torch.manual_seed(0)
+    scene = load_scene(next((scenes / "train").glob("*.npz")))
+    batch = collate(scene_blocks(scene, SMALL).blocks[:2])
+    model = FPCCNet(TINY).train()
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        loss = batch_loss(*model(batch["features"], batch["knn"]), batch)[0]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
+
+
+def test_cli_train_resume_export(scenes, tmp_path):
+    run = tmp_path / "run"
+    assert fpcc(["train", "--data", str(scenes / "train"), "--val", str(scenes / "val"),
+                 "--out", str(run), "--epochs", "2", *TRAIN_ARGS]) == 0
+    for name in ("checkpoint_last.pt", "checkpoint_best.pt", "history.csv", "history.png"):
+        assert (run / name).is_file(), name
+    rows = _history(run)
+    assert [r["epoch"] for r in rows] == ["1", "2"]
+    for r in rows:
+        assert float(r["loss"]) == pytest.approx(float(r["loss_ef"]) + 3 * float(r["loss_cs"]), rel=1e-6)
+        assert r["val_loss"] and r["val_precision"] and r["val_recall"] and r["val_center_mae"]
+    state = torch.load(run / "checkpoint_last.pt", weights_only=True)   # plain types only
+    assert state["epoch"] == 2 and state["step"] == 0
+
+    assert fpcc(["train", "--out", str(run), "--epochs", "3", "--resume", "--threads", "2"]) == 0
+    resumed = _history(run)
+    assert len(resumed) == 3 and resumed[:2] == rows
+
+    onnx_path = tmp_path / "models" / "fake.onnx"
+    assert fpcc(["export", str(run / "checkpoint_last.pt"), "--out", str(onnx_path)]) == 0
+    card = load_card(card_path_for(onnx_path))
+    assert (card.name, card.k, card.block_size, card.voxel_factor) == ("fake", 8, 256, 0.15)
+    assert card.part_radius == pytest.approx(A)
+    assert card.trained_on["num_scenes"] == 3 and card.trained_on["part_names"] == ["ellipsoid"]
+    assert card.training["epochs"] == 3 and "--resume" in card.training["command"]
+    assert "val_loss" in card.metrics and "val_precision" in card.metrics
+
+    # onnxruntime agrees with torch on a real block of the validation scene, at another N and B
+    model = model_from_checkpoint(load_checkpoint(run / "checkpoint_last.pt")).eval()
+    block = scene_blocks(load_scene(next((scenes / "val").glob("*.npz"))), SMALL).blocks[0]
+    for b, n in ((1, len(block.xyz)), (3, 50)):
+        feats = np.repeat(block.features[None, :n], b, 0)
+        knn = np.repeat(np.minimum(block.knn[None, :n], n - 1), b, 0)
+        emb, score = _ort(onnx_path).run(["embedding", "center_score"], {"features": feats, "knn": knn})
+        with torch.no_grad():
+            t_emb, t_score = model(torch.from_numpy(feats), torch.from_numpy(knn))
+        assert emb.shape == (b, n, 128) and score.shape == (b, n)
+        assert np.abs(emb - t_emb.numpy()).max() < 1e-4 and np.abs(score - t_score.numpy()).max() < 1e-4
+
+    # the torch weights beside the ONNX are what --init uses
+    pt = resolve_init(onnx_path)
+    assert pt == onnx_path.with_suffix(".pt")
+    for key, value in load_checkpoint(pt)["model"].items():
+        torch.testing.assert_close(value, model.state_dict()[key])
+    summary = train(TrainConfig(epochs=1, batch=4, data=SMALL, threads=2), [scenes / "val"],
+                    tmp_path / "run2", init=onnx_path, progress=False)
+    assert summary["status"] == "done"
+    assert load_checkpoint(tmp_path / "run2" / "checkpoint_last.pt")["net"] == TINY.to_dict()
+
+
+def test_time_limit_stops_mid_epoch_and_resume_is_exact(scenes, tmp_path, monkeypatch):
+    train(TINY_CONFIG, [scenes / "train"], tmp_path / "whole", progress=False)
+
+    ticks = iter(range(0, 10**6, 10))          # a clock that advances 10 s per reading
+    monkeypatch.setattr(train_mod, "_now", lambda: next(ticks))
+    limited = TrainConfig(**{**TINY_CONFIG.__dict__, "time_limit_min": 0.5})
+    summary = train(limited, [scenes / "train"], tmp_path / "cut", progress=False)
+    assert summary["status"] == "time_limit"
+    state = load_checkpoint(tmp_path / "cut" / "checkpoint_last.pt")
+    assert state["epoch"] == 0 and 0 < state["step"] < 6
+    monkeypatch.undo()
+
+    assert train(TINY_CONFIG, None, tmp_path / "cut", resume=True, progress=False)["status"] == "done"
+    whole = load_checkpoint(tmp_path / "whole" / "checkpoint_last.pt")["model"]
+    cut = load_checkpoint(tmp_path / "cut" / "checkpoint_last.pt")["model"]
+    for key in whole:
+        torch.testing.assert_close(cut[key], whole[key], atol=1e-6, rtol=1e-5)
+
+
+def test_full_size_network_exports_and_agrees(tmp_path):
+    torch.manual_seed(0)
+    model = FPCCNet().eval()
+    path = export_onnx(model, tmp_path / "full.onnx", k=16)
+    assert check_onnx(model, path, k=16, batch=2, points=300) < 1e-4
+    assert path.stat().st_size < 5_000_000
+
+
+def _run_random(path, k, n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    feats = rng.uniform(0, 1, size=(2, n, 6)).astype(np.float32)
+    knn = np.concatenate([np.broadcast_to(np.arange(n)[None, :, None], (2, n, 1)),
+                          rng.integers(0, n, size=(2, n, k - 1))], axis=2).astype(np.int64)
+    return _ort(path).run(["embedding", "center_score"], {"features": feats, "knn": knn})
+
+
+def test_export_untrained_small_and_valid(tmp_path):
+    path = tmp_path / "tiny.onnx"
+    card = export_untrained(path, k=16, seed=0, part_radius=0.05)
+    assert path.stat().st_size < 300_000
+    loaded = load_card(card_path_for(path))
+    assert loaded == card and loaded.k == 16 and loaded.part_radius == 0.05
+    emb, score = _run_random(path, 16)
+    assert emb.shape == (2, 200, 128) and np.isfinite(emb).all()
+    assert (score >= 0).all() and (score <= 1).all() and score.std() > 0.01
+
+
+def test_committed_tiny_model_is_reproducible(tmp_path):
+    """test/data/tiny_fpcc.onnx is export_untrained(k=16, seed=0, part_radius=0.05)."""
+    card = load_card(card_path_for(COMMITTED))
+    assert COMMITTED.stat().st_size < 300_000 and card.k == 16
+    fresh = tmp_path / "tiny.onnx"
+    export_untrained(fresh, k=16, seed=0, part_radius=0.05)
+    for a, b in zip(_run_random(COMMITTED, 16), _run_random(fresh, 16)):
+        np.testing.assert_allclose(a, b, atol=1e-5)
