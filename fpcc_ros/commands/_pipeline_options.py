@@ -1,0 +1,42 @@
+"""Model and pipeline options shared by `segment`, `eval` and `bench`."""
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from fpcc_ros.onnx_model import FpccModel, default_model_path
+from fpcc_ros.pipeline import Pipeline, PipelineConfig
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("model and pipeline (defaults: the model card)")
+    group.add_argument("--model", default=None, help="FPCC-Net .onnx (default: shipped model)")
+    group.add_argument("--part-radius", type=float, default=None, help="part d_max in metres")
+    group.add_argument("--screening-factor", type=float, default=None, help="NMS gamma")
+    group.add_argument("--score-threshold", type=float, default=None, help="NMS theta")
+    group.add_argument("--min-points", type=int, default=None, help="smallest instance kept")
+    group.add_argument("--voxel-size", type=float, default=None,
+                       help="m; 0 = off (full resolution), -1 = auto")
+    group.add_argument("--feature-gate", type=float, default=None)
+    group.add_argument("--roi-min", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    group.add_argument("--roi-max", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    group.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0 = all)")
+    group.add_argument("--provider", default="cpu", choices=["cpu", "cuda"],
+                       help="onnxruntime execution provider")
+
+
+PROVIDERS = {"cpu": ["CPUExecutionProvider"],
+             "cuda": ["CUDAExecutionProvider", "CPUExecutionProvider"]}
+
+
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
+             "feature_gate", "roi_min", "roi_max")
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+
+
+def build_pipeline(args: argparse.Namespace, **extra: Any) -> Pipeline:
+    """Raises ModelLoadError / ConfigError with user-facing messages."""
+    model = FpccModel(args.model or default_model_path(), providers=PROVIDERS[args.provider],
+                      threads=args.threads)
+    return Pipeline(model, PipelineConfig.from_card(model.card, **{**config_overrides(args), **extra}))

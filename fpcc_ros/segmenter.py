@@ -1,0 +1,334 @@
+"""The `segmenter` node (`fpcc_segmenter`): PointCloud2 in, instances out (DESIGN.md §3).
+
+Thin on purpose: parameters, pub/sub, a newest-frame slot and timing. The per-frame work is
+:func:`fpcc_ros.frame.process_cloud`. The subscription callback only parks the newest cloud in
+a one-message slot; a worker thread segments whatever is newest when it is free, so the node
+never works through a queue of stale frames (dropped frames are counted and reported).
+"""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseArray
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, DurabilityPolicy)
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from msg_tools.msg_types import RCLPY
+from msg_tools.point_cloud2 import CloudFormatError
+
+from fpcc_ros.frame import process_cloud
+from fpcc_ros.onnx_model import FpccModel, ModelLoadError, default_model_path
+from fpcc_ros.pipeline import AUTO_VOXEL, ConfigError, Pipeline, PipelineConfig
+
+NODE_NAME = "fpcc_segmenter"
+# Reliable + keep-last-1: a reliable camera driver's ~5 MB clouds arrive intact across processes
+# (best-effort loses most UDP fragments), and depth 1 means the newest frame replaces older ones.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                        reliability=ReliabilityPolicy.RELIABLE)
+PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
+                   "roi_max", "voxel_size", "feature_gate")
+MODEL_PARAMS = ("model", "providers", "threads")
+
+
+@dataclass(frozen=True)
+class _Param:
+    name: str
+    kind: int
+    description: str
+    low: float | None = None
+    high: float | None = None
+    read_only: bool = False
+
+
+def _describe(p: _Param) -> ParameterDescriptor:
+    desc = ParameterDescriptor(name=p.name, type=p.kind, description=p.description,
+                               read_only=p.read_only)
+    if p.kind == ParameterType.PARAMETER_DOUBLE and p.low is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(p.low),
+                                                        to_value=float(p.high), step=0.0)]
+    if p.kind == ParameterType.PARAMETER_INTEGER and p.low is not None:
+        desc.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high), step=1)]
+    return desc
+
+
+PARAMS = (
+    _Param("model", ParameterType.PARAMETER_STRING,
+           "Path to the FPCC-Net .onnx (its card .json beside it). Empty = the shipped default. "
+           "Changing it loads and checks the new model, then swaps it in between frames."),
+    _Param("providers", ParameterType.PARAMETER_STRING_ARRAY,
+           "onnxruntime execution providers in priority order, e.g. [CUDAExecutionProvider, "
+           "CPUExecutionProvider]. The active ones are logged."),
+    _Param("part_radius", ParameterType.PARAMETER_DOUBLE,
+           "d_max of the part in metres: farthest surface point from its geometric center "
+           "(`fpcc part-info MESH` prints it). Default: the model card's.", 0.0001, 10.0),
+    _Param("screening_factor", ParameterType.PARAMETER_DOUBLE,
+           "gamma: NMS suppresses other center candidates within gamma * part_radius.", 0.05, 5.0),
+    _Param("score_threshold", ParameterType.PARAMETER_DOUBLE,
+           "theta: points with a predicted center score above this are center candidates "
+           "(paper: 0.6).", 0.0, 0.999),
+    _Param("min_points", ParameterType.PARAMETER_INTEGER,
+           "Instances with fewer input points get label 0.", 0, 10_000_000),
+    _Param("roi_min", ParameterType.PARAMETER_DOUBLE_ARRAY,
+           "[x, y, z] lower corner of the crop box in the cloud's frame (m). Empty = no crop."),
+    _Param("roi_max", ParameterType.PARAMETER_DOUBLE_ARRAY,
+           "[x, y, z] upper corner of the crop box in the cloud's frame (m). Empty = no crop."),
+    _Param("voxel_size", ParameterType.PARAMETER_DOUBLE,
+           "Voxel edge (m) for downsampling before the network; labels are carried back to "
+           "every input point. 0 = off, -1 = auto (the card's voxel_factor * part_radius).",
+           -1.0, 1.0),
+    _Param("feature_gate", ParameterType.PARAMETER_DOUBLE,
+           "Points farther than this from every nearby center in embedding space get no "
+           "instance (rejects tote and floor). Default: the model card's.", 0.01, 100.0),
+    _Param("threads", ParameterType.PARAMETER_INTEGER,
+           "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
+    _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
+           "Skip frames whose header stamp is older than this many seconds (0 = off).",
+           0.0, 3600.0),
+)
+
+
+class _WarnThrottle:
+    """One warning per distinct problem per period, with a count of the ones held back."""
+
+    def __init__(self, logger: Any, period_s: float = 5.0):
+        self._logger, self._period = logger, period_s
+        self._last: dict[str, tuple[float, int]] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        last, held = self._last.get(key, (-math.inf, 0))
+        if now - last >= self._period:
+            more = f" ({held} more like this since the last warning)" if held else ""
+            self._logger.warning(text + more)
+            self._last[key] = (now, 0)
+        else:
+            self._last[key] = (last, held + 1)
+
+
+class SegmenterNode(Node):
+    def __init__(self, **kwargs: Any):
+        super().__init__(NODE_NAME, **kwargs)
+        self._throttle = _WarnThrottle(self.get_logger())
+        self._declare_parameters()
+        self._pipeline = self._build_pipeline(self._param_values())
+        self._log_model(self._pipeline)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._slot_lock = threading.Condition()
+        self._newest: tuple[PointCloud2, float] | None = None
+        self._running = True
+        self.stats = _Stats()
+
+        self._pub_cloud = self.create_publisher(
+            PointCloud2, "segmented_points", OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_instances = self.create_publisher(
+            PoseArray, "instances", OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._pub_markers = self.create_publisher(
+            MarkerArray, "instance_markers", OUTPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self._sub = self.create_subscription(
+            PointCloud2, "points", self._on_cloud, INPUT_QOS,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible_qos))
+        self._worker = threading.Thread(target=self._work, name="fpcc_worker", daemon=True)
+        self._worker.start()
+        self._report_timer = self.create_timer(10.0, self._report)
+        self.get_logger().info(f"listening on {self._sub.topic_name}")
+
+    # ---- parameters -------------------------------------------------------------------------
+    def _declare_parameters(self) -> None:
+        from fpcc_ros.model_card import card_path_for, load_card, ModelCardError
+        try:
+            card = load_card(card_path_for(default_model_path()))
+        except ModelCardError:
+            card = None  # reported when the model loads
+        defaults: dict[str, Any] = {
+            "model": "", "providers": ["CPUExecutionProvider"],
+            "part_radius": card.part_radius if card else 0.05,
+            "screening_factor": card.screening_factor if card else 1.0,
+            "score_threshold": card.score_threshold if card else 0.6,
+            "min_points": PipelineConfig.min_points, "voxel_size": AUTO_VOXEL,
+            "feature_gate": card.feature_gate if card else 1.0, "threads": 0, "max_input_age": 0.0,
+        }
+        for p in PARAMS:
+            if p.kind == ParameterType.PARAMETER_DOUBLE_ARRAY:
+                self.declare_parameter(p.name, Parameter.Type.DOUBLE_ARRAY, _describe(p))
+            else:
+                self.declare_parameter(p.name, defaults[p.name], _describe(p))
+
+    def _param_values(self) -> dict[str, Any]:
+        # Array parameters declared without a value (no crop) read back as None.
+        return {p.name: self.get_parameter_or(p.name, Parameter(p.name, value=None)).value
+                for p in PARAMS}
+
+    def _build_pipeline(self, values: dict[str, Any], model: FpccModel | None = None) -> Pipeline:
+        """Raises ModelLoadError or ConfigError with a message fit for the user."""
+        if model is None:
+            path = values["model"] or str(default_model_path())
+            model = FpccModel(path, providers=list(values["providers"] or []) or None,
+                              threads=int(values["threads"]))
+        pipeline_values = {k: values[k] for k in PIPELINE_PARAMS}
+        for key in ("roi_min", "roi_max"):
+            pipeline_values[key] = list(pipeline_values[key]) if pipeline_values[key] else None
+        config = PipelineConfig.from_card(model.card, **pipeline_values)
+        return Pipeline(model, config)
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        values = self._param_values()
+        values.update({p.name: p.value for p in params})
+        current = self._pipeline
+        try:
+            if any(p.name in MODEL_PARAMS for p in params):
+                candidate = self._build_pipeline(values)
+                self._log_model(candidate)
+            else:
+                candidate = self._build_pipeline(values, model=current.model)
+        except (ModelLoadError, ConfigError, TypeError, ValueError) as exc:
+            self.get_logger().warning(f"parameter change rejected: {exc}")
+            return SetParametersResult(successful=False, reason=str(exc))
+        self._pipeline = candidate   # one reference swap: the worker picks it up next frame
+        return SetParametersResult(successful=True)
+
+    def _log_model(self, pipeline: Pipeline) -> None:
+        m, c = pipeline.model, pipeline.config
+        self.get_logger().info(
+            f"model {m.path} ({m.card.name}), providers {m.active_providers}, part_radius "
+            f"{c.part_radius:.4f} m, voxel {c.effective_voxel_size * 1000:.1f} mm")
+
+    # ---- frames -----------------------------------------------------------------------------
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._slot_lock:
+            if self._newest is not None:
+                self.stats.dropped_stale += 1
+            self._newest = (msg, time.perf_counter())
+            self.stats.received += 1
+            self._slot_lock.notify()
+
+    def _on_incompatible_qos(self, event: Any) -> None:
+        self._throttle.warn("qos", (
+            f"a publisher on {self._sub.topic_name} has incompatible QoS (policy "
+            f"{event.last_policy_kind}); camera drivers that publish best effort need "
+            f"-p qos_overrides.{self._sub.topic_name}.subscription.reliability:=best_effort "
+            "and the shared-memory Fast DDS profile (README: 'Large clouds')"))
+
+    def _work(self) -> None:
+        while True:
+            with self._slot_lock:
+                while self._newest is None and self._running:
+                    self._slot_lock.wait(timeout=0.5)
+                if not self._running:
+                    return
+                msg, received_at = self._newest
+                self._newest = None
+            self._process(msg, received_at)
+
+    def _process(self, msg: PointCloud2, received_at: float) -> None:
+        max_age = float(self.get_parameter("max_input_age").value)
+        if max_age > 0 and self._age_s(msg) > max_age:
+            self.stats.skipped_old += 1
+            self._throttle.warn("age", f"skipping a frame {self._age_s(msg):.2f} s old "
+                                       f"(max_input_age={max_age} s)")
+            return
+        pipeline = self._pipeline
+        try:
+            out = process_cloud(msg, pipeline, RCLPY)
+        except CloudFormatError as exc:
+            self.stats.invalid += 1
+            self._throttle.warn(f"bad:{str(exc)[:40]}", f"dropped a malformed PointCloud2: {exc}")
+            return
+        except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the node
+            self.stats.failed += 1
+            self._throttle.warn(f"err:{type(exc).__name__}",
+                                f"frame failed ({type(exc).__name__}: {exc}); continuing")
+            return
+        self._pub_cloud.publish(out.cloud)
+        self._pub_instances.publish(out.instances)
+        self._pub_markers.publish(out.markers)
+        self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
+
+    def _age_s(self, msg: PointCloud2) -> float:
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        return self.get_clock().now().nanoseconds * 1e-9 - stamp
+
+    def _report(self) -> None:
+        s = self.stats.snapshot()
+        if s["published"]:
+            self.get_logger().info(
+                f"{s['published']} frames out, {s['dropped_stale']} stale dropped, "
+                f"{s['invalid']} invalid, {s['failed']} failed; latency median "
+                f"{s['latency_ms_median']:.0f} ms, last {s['last_instances']} instances")
+
+    def stop_worker(self) -> None:
+        with self._slot_lock:
+            self._running = False
+            self._slot_lock.notify()
+        self._worker.join(timeout=5.0)
+
+
+class _Stats:
+    """Counters read by the periodic report and by tests."""
+
+    def __init__(self) -> None:
+        self.received = self.dropped_stale = self.invalid = self.failed = self.skipped_old = 0
+        self.published = 0
+        self.last_instances = 0
+        self._latency = deque(maxlen=200)
+
+    def record(self, latency_s: float, instances: int) -> None:
+        self.published += 1
+        self.last_instances = instances
+        self._latency.append(latency_s * 1e3)
+
+    def snapshot(self) -> dict[str, Any]:
+        lat = list(self._latency)
+        return {"received": self.received, "published": self.published,
+                "dropped_stale": self.dropped_stale, "invalid": self.invalid,
+                "failed": self.failed, "skipped_old": self.skipped_old,
+                "last_instances": self.last_instances,
+                "latency_ms_median": float(np.median(lat)) if lat else math.nan}
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = SegmenterNode()
+    except (ModelLoadError, ConfigError) as exc:
+        print(f"[{NODE_NAME}] cannot start: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.stop_worker()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
