@@ -1,0 +1,88 @@
+"""`fpcc eval --data DIR`: FPCC vs the Euclidean-clustering baseline on labelled scene NPZs.
+
+Prints a per-scene table and a summary with both methods side by side under the paper and
+visible protocols (DESIGN.md §4b), and writes the full report as JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from fpcc_ros.commands._pipeline_options import add_pipeline_arguments, build_pipeline
+
+SEGMENT_OUTPUT_SUFFIX = "_segmented.npz"  # written by `fpcc segment`: predictions, not ground truth
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR",
+                        help="directory of scene NPZ files with ground truth (DESIGN.md §4)")
+    parser.add_argument("--out", type=Path, default=None, metavar="REPORT.json",
+                        help="JSON report (default: DIR/eval_<model stem>.json)")
+    parser.add_argument("--limit", type=_positive_int, default=None, metavar="N",
+                        help="evaluate only the first N scenes (sorted by name)")
+    parser.add_argument("--protocol", choices=["visible", "paper", "both"], default="both",
+                        help="visible: GT instances under 300 points at 640x480 removed; paper: "
+                        "every GT instance counts (default: both)")
+    parser.add_argument("--baseline-tolerances", type=float, nargs="+", default=None, metavar="M",
+                        help="Euclidean-clustering tolerances to sweep, metres (default: 2-20%% "
+                        "of the median part radius, 7 steps); the report uses the best one")
+    parser.add_argument("--no-baseline", action="store_true", help="evaluate FPCC only")
+    add_pipeline_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from fpcc_ros.evaluation import EvalError, evaluate
+    from fpcc_ros.onnx_model import ModelLoadError, default_model_path
+    from fpcc_ros.pipeline import ConfigError
+
+    def fail(message: str) -> int:
+        print(f"fpcc eval: {message}", file=sys.stderr)
+        return 2
+
+    data: Path = args.data
+    if not data.is_dir():
+        return fail(f"--data {data} is not a directory; point it at a folder of scene .npz files")
+    scenes = sorted(p for p in data.glob("*.npz") if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
+    ignored = sum(1 for p in data.glob("*" + SEGMENT_OUTPUT_SUFFIX))
+    if ignored:
+        print(f"ignoring {ignored} *{SEGMENT_OUTPUT_SUFFIX} file(s): `fpcc segment` outputs hold "
+              "predictions, not ground truth", file=sys.stderr)
+    if not scenes:
+        return fail(f"--data {data} holds no scene .npz files (make some with `fpcc synth`)")
+    if args.limit:
+        scenes = scenes[:args.limit]
+    protocols = ("paper", "visible") if args.protocol == "both" else (args.protocol,)
+    model_path = Path(args.model) if args.model else default_model_path()
+    out: Path = args.out or data / f"eval_{model_path.stem}.json"
+
+    try:
+        pipeline = build_pipeline(args)
+        report = evaluate(scenes, pipeline, tolerances=args.baseline_tolerances,
+                          protocols=protocols, baseline=not args.no_baseline,
+                          fixed_part_radius=args.part_radius is not None,
+                          progress=lambda it: tqdm(it, desc="eval", unit="scene", file=sys.stderr),
+                          warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr))
+    except (ModelLoadError, ConfigError, EvalError) as exc:
+        return fail(str(exc))
+
+    print(report.table())
+    print()
+    print(report.summary())
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    except OSError as exc:
+        return fail(f"cannot write the report to {out} ({exc}); choose another --out")
+    print(f"wrote {out}")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value

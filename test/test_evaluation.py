@@ -1,0 +1,248 @@
+"""evaluate() and `fpcc eval` on tiny hand-built scenes with known answers."""
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fpcc_ros.cli import main as cli_main
+from fpcc_ros.evaluation import EvalError, SceneError, default_tolerances, evaluate, f1_score
+from fpcc_ros.pipeline import PipelineConfig, SegmentationResult
+
+TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
+
+
+def grid(lo, hi, step) -> np.ndarray:
+    axes = [np.arange(a, b + step / 2, step) if b > a else np.array([a]) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def patch(x, y, z, step=0.005, size=0.04) -> np.ndarray:
+    """The top face of a part as a camera above sees it: a flat square, 9x9 points at 5 mm."""
+    return grid((x, y, z), (x + size, y + size, z), step)
+
+
+# A floor (z = 1, the dominant plane: the baseline removes it) and three parts 15-30 mm above it,
+# 25 mm apart. Part faces are parallel to the floor, so the baseline never takes them for walls.
+FLOOR = grid((-0.04, -0.04, 1.0), (0.21, 0.21, 1.0), 0.005)          # 51 x 51 = 2601 points
+ROW = [patch(0.0, 0.05, 0.98), patch(0.065, 0.05, 0.97), patch(0.13, 0.05, 0.985)]
+
+
+def write_scene(path: Path, parts, *, extra=None, organized=None, part_radius=0.05) -> np.ndarray:
+    """Scene NPZ from parts (labels 1..K); ``extra`` points get label 0. Organized scenes are
+    padded with NaN pixels to H*W. Returns the flat ground-truth labels as written."""
+    chunks = list(parts) + ([extra] if extra is not None else [])
+    xyz = np.concatenate(chunks).astype(np.float32)
+    gt = np.concatenate([np.full(len(p), i + 1) for i, p in enumerate(parts)]
+                        + ([np.zeros(len(extra), int)] if extra is not None else [])).astype(np.int32)
+    if organized:
+        h, w = organized
+        pad = h * w - len(xyz)
+        xyz = np.concatenate([xyz, np.full((pad, 3), np.nan, np.float32)]).reshape(h, w, 3)
+        gt = np.concatenate([gt, np.zeros(pad, np.int32)]).reshape(h, w)
+    np.savez(path, points=xyz, instance=gt, center_score=np.zeros(gt.shape, np.float32),
+             part_radius=np.float32(part_radius))
+    return gt.reshape(-1)
+
+
+class GroundTruthPipeline:
+    """Stands in for Pipeline: returns each scene's ground truth as its prediction."""
+
+    def __init__(self, truths: list[np.ndarray], part_radius: float = 0.05):
+        self.config = PipelineConfig(part_radius=part_radius)
+        self.truths = truths
+        self.calls: list[tuple[int, float]] = []  # (points, part_radius) per segment call
+
+    def segment(self, xyz: np.ndarray) -> SegmentationResult:
+        self.calls.append((len(xyz), self.config.part_radius))
+        labels = next(t for t in self.truths if len(t) == len(xyz)).astype(np.uint32)
+        k = int(labels.max())
+        return SegmentationResult(labels=labels, center_score=np.zeros(len(xyz), np.float32),
+                                  centroids=np.zeros((k, 3)), point_counts=np.ones(k, np.int64),
+                                  num_valid=len(xyz), num_network_points=len(xyz))
+
+
+def test_perfect_prediction_scores_one_and_visible_drops_slivers(tmp_path):
+    # organized 48 x 64: visible threshold = round(300 * 3072 / 307200) = 3 points
+    sliver = np.array([[0.2, 0.2, 0.95], [0.2, 0.21, 0.95]])         # instance 4: 2 points
+    gt = write_scene(tmp_path / "a.npz", [*ROW, sliver], extra=FLOOR, organized=(48, 64))
+    report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), tolerances=[0.008])
+    scene = report.scenes[0]
+    assert (scene.gt_instances, scene.visible_gt, scene.visible_threshold) == (4, 3, 3)
+    paper, visible = report.fpcc_totals("paper"), report.fpcc_totals("visible")
+    assert (paper.true_positives, paper.predictions, paper.ground_truths) == (4, 4, 4)
+    assert (visible.true_positives, visible.predictions, visible.ground_truths) == (3, 3, 3)
+    for c in (paper, visible):
+        assert c.precision == c.recall == c.mucov == c.mwcov == 1.0
+    # the baseline at 8 mm links the 5 mm grid and finds the parts; the 2-point sliver is under
+    # min_points (50), so it misses one of 4 under paper and none under visible
+    base_paper = report.baseline_totals("paper", 0.008)
+    assert (base_paper.true_positives, base_paper.predictions, base_paper.ground_truths) == (3, 3, 4)
+    assert report.baseline_totals("visible", 0.008).recall == 1.0
+    data = report.to_json()
+    assert data["totals"]["visible"]["fpcc"]["precision"] == 1.0
+    assert data["scenes"][0]["visible_gt"] == 3
+    json.dumps(data)  # serialisable
+    assert "a.npz" in report.table() and "visible" in report.summary()
+
+
+def test_unorganized_scene_uses_300_points(tmp_path):
+    big = [patch(x, 0.0, 1.0, step=0.002) for x in (0.0, 0.1, 0.2)]   # 21 x 21 = 441 points
+    small = patch(0.3, 0.0, 1.0, step=0.004)                          # 11 x 11 = 121 points
+    gt = write_scene(tmp_path / "u.npz", [*big, small])
+    report = evaluate([tmp_path / "u.npz"], GroundTruthPipeline([gt]), baseline=False)
+    s = report.scenes[0]
+    assert (s.visible_threshold, s.gt_instances, s.visible_gt) == (300, 4, 3)
+    assert report.tolerances == [] and report.best_tolerance("visible") is None
+    assert report.to_json()["totals"]["visible"]["baseline"] is None
+
+
+def test_best_tolerance_is_the_one_that_scores_best(tmp_path):
+    """3 mm: below the 5 mm grid, every point alone -> nothing (F1 0). 8 mm: the three parts
+    exactly (F1 1). 0.2 m: wider than the whole row (0.17 m), one cluster, IoU 1/3 (F1 0).
+    (Up to 8 mm the clustering voxel, tol/3, is finer than the grid: no downsampling at all.)"""
+    gt = write_scene(tmp_path / "a.npz", ROW, extra=FLOOR, organized=(48, 64))
+    report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]),
+                      tolerances=[0.2, 0.003, 0.008])
+    assert report.tolerances == [0.003, 0.008, 0.2]
+    f1 = [f1_score(report.baseline_totals("paper", t)) for t in report.tolerances]
+    assert f1 == [0.0, 1.0, 0.0]
+    assert report.best_tolerance("paper") == report.best_tolerance("visible") == 0.008
+    assert report.to_json()["baseline"]["best_tolerance_m"] == {"paper": 0.008, "visible": 0.008}
+    assert [r.predicted for r in report.scenes[0].baseline] == [0, 3, 1]
+
+
+def test_best_tolerance_uses_counts_summed_over_scenes(tmp_path):
+    """Scene a (25 mm gaps) is perfect at 6 and 8 mm; scene b (7 mm gap) only at 6 mm, since
+    8 mm merges its two parts. The counts summed over both scenes pick 6 mm."""
+    near = [patch(0.0, 0.0, 0.98), patch(0.047, 0.0, 0.98)]           # 7 mm gap
+    gt_a = write_scene(tmp_path / "a.npz", ROW, extra=FLOOR)
+    gt_b = write_scene(tmp_path / "b.npz", near, extra=FLOOR)
+    report = evaluate([tmp_path / "a.npz", tmp_path / "b.npz"],
+                      GroundTruthPipeline([gt_a, gt_b]), tolerances=[0.006, 0.008], protocols=["paper"])
+    # 6 mm: a 3/3 correct, b 2/2 correct -> TP 5, pred 5, GT 5 (F1 1)
+    # 8 mm: a 3/3 correct; b one cluster with IoU exactly 1/2 to each cube (>= 0.5: one match)
+    #       -> TP 4, pred 4, GT 5 (F1 8/9)
+    totals = {t: report.baseline_totals("paper", t) for t in report.tolerances}
+    assert (totals[0.006].true_positives, totals[0.006].predictions) == (5, 5)
+    assert (totals[0.008].true_positives, totals[0.008].predictions) == (4, 4)
+    assert f1_score(totals[0.008]) == pytest.approx(8 / 9)
+    assert report.best_tolerance("paper") == 0.006
+
+
+def test_scene_part_radius_unless_fixed(tmp_path):
+    gts = [write_scene(tmp_path / "a.npz", ROW, part_radius=0.03),
+           write_scene(tmp_path / "b.npz", ROW[:2], part_radius=0.07)]
+    fake = GroundTruthPipeline(gts)
+    evaluate([tmp_path / "a.npz", tmp_path / "b.npz"], fake, baseline=False)
+    assert [r for _, r in fake.calls] == pytest.approx([0.03, 0.07])
+    assert fake.config.part_radius == 0.05                              # caller's untouched
+    fake.calls.clear()
+    report = evaluate([tmp_path / "a.npz", tmp_path / "b.npz"], fake, baseline=False,
+                      fixed_part_radius=True)
+    assert [r for _, r in fake.calls] == [0.05, 0.05]
+    assert report.to_json()["pipeline"]["part_radius_source"] == "fixed"
+
+
+def test_default_tolerances_scale_with_part_radius():
+    assert default_tolerances(0.1) == pytest.approx([0.002, 0.0029, 0.0043, 0.0063, 0.0093,
+                                                     0.0136, 0.02])
+    assert default_tolerances(0.05)[0] == 0.001 and default_tolerances(0.05)[-1] == 0.01
+
+
+def test_scenes_without_instances_skipped_then_error(tmp_path):
+    gt = write_scene(tmp_path / "a.npz", ROW)
+    np.savez(tmp_path / "empty.npz", points=FLOOR.astype(np.float32),
+             instance=np.zeros(len(FLOOR), np.int32), part_radius=np.float32(0.05))
+    warnings: list[str] = []
+    report = evaluate([tmp_path / "a.npz", tmp_path / "empty.npz"], GroundTruthPipeline([gt]),
+                      baseline=False, warn=warnings.append)
+    assert [s.scene for s in report.scenes] == ["a.npz"]
+    assert report.skipped[0][0] == "empty.npz" and "empty.npz" in warnings[0]
+    with pytest.raises(EvalError, match="none of the 1 scenes has ground-truth instances"):
+        evaluate([tmp_path / "empty.npz"], GroundTruthPipeline([gt]), baseline=False)
+
+
+def test_malformed_scene_names_the_key(tmp_path):
+    np.savez(tmp_path / "bad.npz", points=np.zeros((10, 3), np.float32), part_radius=0.05)
+    with pytest.raises(SceneError, match="missing key 'instance'"):
+        evaluate([tmp_path / "bad.npz"], GroundTruthPipeline([]), baseline=False)
+    np.savez(tmp_path / "norad.npz", points=np.zeros((10, 3), np.float32),
+             instance=np.ones(10, np.int32))
+    with pytest.raises(SceneError, match="part_radius"):
+        evaluate([tmp_path / "norad.npz"], GroundTruthPipeline([]), baseline=False)
+
+
+# -- the command ----------------------------------------------------------------------------------
+needs_model = pytest.mark.skipif(not TINY_MODEL.exists(), reason="test/data/tiny_fpcc.onnx missing")
+
+
+def _two_scenes(data: Path) -> None:
+    data.mkdir()
+    write_scene(data / "s1.npz", ROW, extra=FLOOR, organized=(48, 64))
+    # unorganized, parts at 2 mm (21 x 21 = 441 points each, over the 300-point visible limit)
+    write_scene(data / "s2.npz", [patch(0.0, 0.05, 0.98, 0.002), patch(0.065, 0.05, 0.97, 0.002)],
+                extra=FLOOR)
+
+
+@needs_model
+def test_command_end_to_end(tmp_path, capsys):
+    data = tmp_path / "scenes"
+    _two_scenes(data)
+    rc = cli_main(["eval", "--data", str(data), "--model", str(TINY_MODEL),
+                   "--baseline-tolerances", "0.003", "0.008"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    report = json.loads((data / "eval_tiny_fpcc.json").read_text())
+    assert {"format", "model", "pipeline", "protocols", "totals", "baseline", "timings_ms",
+            "scenes", "skipped"} <= set(report)
+    assert report["protocols"] == ["paper", "visible"]
+    assert [s["scene"] for s in report["scenes"]] == ["s1.npz", "s2.npz"]
+    assert report["totals"]["visible"]["fpcc"]["ground_truths"] == 5
+    assert report["baseline"]["best_tolerance_m"]["visible"] == 0.008
+    assert report["totals"]["visible"]["baseline"]["precision"] == 1.0
+    assert report["model"]["name"] == "tiny_fpcc"
+    assert "s1.npz" in out and "summary over 2 scenes" in out
+
+
+@needs_model
+def test_command_options(tmp_path, capsys):
+    data = tmp_path / "scenes"
+    _two_scenes(data)
+    out = tmp_path / "r" / "report.json"
+    rc = cli_main(["eval", "--data", str(data), "--model", str(TINY_MODEL), "--out", str(out),
+                   "--limit", "1", "--protocol", "paper", "--no-baseline", "--part-radius", "0.04"])
+    assert rc == 0
+    report = json.loads(out.read_text())
+    assert report["protocols"] == ["paper"] and len(report["scenes"]) == 1
+    assert report["baseline"]["tolerances_m"] == [] and report["totals"]["paper"]["baseline"] is None
+    assert report["scenes"][0]["part_radius"] == 0.04
+
+
+def test_command_errors(tmp_path, capsys):
+    assert cli_main(["eval", "--data", str(tmp_path / "nope")]) == 2
+    assert "is not a directory" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert cli_main(["eval", "--data", str(tmp_path / "empty")]) == 2
+    assert "no scene .npz files" in capsys.readouterr().err
+
+
+@needs_model
+def test_command_errors_with_model(tmp_path, capsys):
+    data = tmp_path / "scenes"
+    data.mkdir()
+    np.savez(data / "e.npz", points=FLOOR.astype(np.float32),
+             instance=np.zeros(len(FLOOR), np.int32), part_radius=np.float32(0.05))
+    assert cli_main(["eval", "--data", str(data), "--model", str(TINY_MODEL)]) == 2
+    err = capsys.readouterr().err
+    assert "skipping" in err and "no ground-truth instances" in err
+    # an ONNX whose card disagrees with it (k = 8 in the card, 16 in the graph)
+    model = tmp_path / "m.onnx"
+    shutil.copy(TINY_MODEL, model)
+    card = json.loads(TINY_MODEL.with_suffix(".json").read_text())
+    model.with_suffix(".json").write_text(json.dumps({**card, "k": 8}))
+    _two_scenes(tmp_path / "ok")
+    assert cli_main(["eval", "--data", str(tmp_path / "ok"), "--model", str(model)]) == 2
+    err = capsys.readouterr().err
+    assert "not an FPCC-Net matching its card" in err and "knn" in err
