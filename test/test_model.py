@@ -10,6 +10,15 @@ from fpcc_ros.training.model import (TINY, Dense, FPCCNet, NetConfig, edge_conv,
 N, K = 64, 8
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One torch thread: the machine is shared and spinning OpenMP threads stall under load."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _inputs(batch=2, n=N, k=K, seed=0):
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(0, 0.2, size=(batch, n, 3))

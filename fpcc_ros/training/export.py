@@ -57,7 +57,9 @@ def check_onnx(model: FPCCNet, path: str | Path, k: int, batch: int = 2, points:
     model = model.eval()
     with torch.no_grad():
         emb, score = model(features, knn)
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1  # a correctness check: no thread pool to spin up
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     o_emb, o_score = session.run(["embedding", "center_score"],
                                  {"features": features.numpy(), "knn": knn.numpy()})
     return float(max(np.abs(o_emb - emb.numpy()).max(), np.abs(o_score - score.numpy()).max()))

@@ -190,7 +190,7 @@ def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
             batch = collate([block])
             emb, s = model(batch["features"], batch["knn"])
             losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1,
-                                                        config.eps2, checkpoint=False)])
+                                                        config.eps2)])
         pred = predict_scene(model, scene, config.data)
         abs_err += float(np.abs(pred.center_score - scene.center_score[pred.rep]).sum())
         n_pts += len(pred.rep)
