@@ -51,7 +51,16 @@ _UINT32_LIMIT = 2**32
 
 
 class CloudFormatError(ValueError):
-    """A PointCloud2 we cannot read; the message names the field, the value and the fix."""
+    """A PointCloud2 we cannot read; the message names the field, the value and the fix.
+
+    ``kind`` is a short fixed name of the problem (``"data_length"``, ``"missing_xyz"`` ...):
+    the message text carries the publisher's numbers and field names, so it cannot key a
+    warning throttle or a counter without growing with every distinct value.
+    """
+
+    def __init__(self, message: str, kind: str = "malformed"):
+        super().__init__(message)
+        self.kind = kind
 
 
 class Field(NamedTuple):
@@ -120,7 +129,8 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
     if height <= 0 or width <= 0:
         raise CloudFormatError(
             f"PointCloud2 has height {height} and width {width}: the cloud has no points; both "
-            f"must be >= 1 (height 1 for an unorganized cloud)"
+            f"must be >= 1 (height 1 for an unorganized cloud)",
+            kind="no_points",
         )
     n = height * width
     if n >= _UINT32_LIMIT or row_step * height >= _UINT32_LIMIT:
@@ -128,17 +138,20 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
             f"PointCloud2 width*height = {width}*{height} = {n} points (row_step*height = "
             f"{row_step * height} bytes) overflows 32 bits (a CDR sequence holds < 2**32 bytes): the "
             f"header is corrupt; "
-            f"check the publisher's width/height/row_step"
+            f"check the publisher's width/height/row_step",
+            kind="size_overflow",
         )
     if n > max_points:
         raise CloudFormatError(
             f"PointCloud2 width*height = {width}*{height} = {n} points exceeds the limit of "
-            f"{max_points} (absurd dimensions); check the publisher's width/height, or raise max_points"
+            f"{max_points} (absurd dimensions); check the publisher's width/height, or raise max_points",
+            kind="too_many_points",
         )
     if point_step <= 0:
         raise CloudFormatError(
             f"PointCloud2 point_step is {point_step}; it must be the byte size of one point "
-            f"(at least the end of its last field)"
+            f"(at least the end of its last field)",
+            kind="point_step",
         )
     fields = _as_fields(msg.fields)
     seen: dict[str, Field] = {}
@@ -147,18 +160,21 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
             count = sum(1 for g in fields if g.name == f.name)
             raise CloudFormatError(
                 f"PointCloud2 field name {f.name!r} appears {count} times (offsets "
-                f"{[g.offset for g in fields if g.name == f.name]}); field names must be unique"
+                f"{[g.offset for g in fields if g.name == f.name]}); field names must be unique",
+                kind="duplicate_field",
             )
         seen[f.name] = f
         if f.datatype not in _DATATYPES:
             raise CloudFormatError(
                 f"PointCloud2 field {f.name!r} has unknown datatype {f.datatype}; "
                 f"sensor_msgs/PointField datatypes are 1..8 (INT8, UINT8, INT16, UINT16, INT32, "
-                f"UINT32, FLOAT32, FLOAT64)"
+                f"UINT32, FLOAT32, FLOAT64)",
+                kind="unknown_datatype",
             )
         if f.offset < 0 or f.count < 0:
             raise CloudFormatError(
-                f"PointCloud2 field {f.name!r} has offset {f.offset} and count {f.count}; both must be >= 0"
+                f"PointCloud2 field {f.name!r} has offset {f.offset} and count {f.count}; both must be >= 0",
+                kind="negative_offset",
             )
         size = _DATATYPES[f.datatype][2]
         end = f.offset + size * f.count
@@ -166,38 +182,44 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
             raise CloudFormatError(
                 f"PointCloud2 field {f.name!r} (offset {f.offset}, {_dtname(f.datatype)} x {f.count} = "
                 f"{size * f.count} bytes) ends at byte {end} but point_step is {point_step}; point_step "
-                f"must be >= {end} (or the field's offset is wrong)"
+                f"must be >= {end} (or the field's offset is wrong)",
+                kind="field_past_point_step",
             )
     for axis in _XYZ:
         f = seen.get(axis)
         if f is None:
             raise CloudFormatError(
                 f"PointCloud2 has no field {axis!r} (fields: {', '.join(seen) or 'none'}); the cloud "
-                f"needs x, y, z fields of datatype FLOAT32 (7) or FLOAT64 (8)"
+                f"needs x, y, z fields of datatype FLOAT32 (7) or FLOAT64 (8)",
+                kind="missing_xyz",
             )
         if f.datatype not in (FLOAT32, FLOAT64):
             raise CloudFormatError(
                 f"PointCloud2 field {axis!r} has datatype {_dtname(f.datatype)}; x, y, z must be "
                 f"FLOAT32 (7) or FLOAT64 (8) in metres: convert the coordinates to float before "
-                f"publishing (e.g. depth_image_proc/point_cloud_xyz for depth images)"
+                f"publishing (e.g. depth_image_proc/point_cloud_xyz for depth images)",
+                kind="xyz_datatype",
             )
         if f.count != 1:
             raise CloudFormatError(
-                f"PointCloud2 field {axis!r} has count {f.count}; x, y, z must each have count 1"
+                f"PointCloud2 field {axis!r} has count {f.count}; x, y, z must each have count 1",
+                kind="xyz_count",
             )
     min_row = width * point_step
     if row_step < min_row:
         raise CloudFormatError(
             f"PointCloud2 row_step {row_step} < width*point_step = {width}*{point_step} = {min_row}; "
-            f"row_step is the byte length of one row and must be at least width*point_step"
+            f"row_step is the byte length of one row and must be at least width*point_step",
+            kind="row_step",
         )
     expected = row_step * height
     have = len(msg.data)
     if have != expected:
-        kind = "truncated" if have < expected else "longer than its header says"
+        what = "truncated" if have < expected else "longer than its header says"
         raise CloudFormatError(
             f"PointCloud2 data has {have} bytes but row_step*height = {row_step}*{height} = "
-            f"{expected}: the message is {kind}; check the publisher's row_step/height/data"
+            f"{expected}: the message is {what}; check the publisher's row_step/height/data",
+            kind="data_length",
         )
 
 
@@ -228,7 +250,8 @@ def dtype_from_fields(fields: Sequence[Any], point_step: int | None = None, is_b
             problem = f"offset {f.offset} + {spec[2] * f.count} bytes past point_step {point_step}"
         if problem:
             if f.name in _XYZ:
-                raise CloudFormatError(f"PointCloud2 field {f.name!r} cannot be read: {problem}")
+                raise CloudFormatError(f"PointCloud2 field {f.name!r} cannot be read: {problem}",
+                                       kind="xyz_unreadable")
             continue
         assert spec is not None
         code = ("|" if spec[2] == 1 else order) + spec[1]
