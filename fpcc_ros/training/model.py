@@ -135,15 +135,20 @@ class FPCCNet(nn.Module):
         self.score_out = nn.Linear(h, 1)
 
     def forward(self, features: torch.Tensor, knn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x1 = self.edge1b(edge_conv(self.edge1a, features, knn)).amax(dim=2)
-        x2 = self.edge2b(edge_conv(self.edge2a, x1, knn)).amax(dim=2)
-        x3 = edge_conv(self.edge3, x2, knn).amax(dim=2)
+        x1 = self._max(self.edge1b(edge_conv(self.edge1a, features, knn)), dim=2)
+        x2 = self._max(self.edge2b(edge_conv(self.edge2a, x1, knn)), dim=2)
+        x3 = self._max(edge_conv(self.edge3, x2, knn), dim=2)
         local = torch.cat([x1, x2, x3], dim=-1)                      # (B, N, 3e)
         glob = self.glob(local).amax(dim=1, keepdim=True)            # (B, 1, global_dim)
         point = self.point2(global_split(self.point1, local, glob))  # (B, N, 256)
         embedding = self.emb_out(self.emb_hidden(point))
         center_score = torch.sigmoid(self.score_out(self.score_hidden(point))).squeeze(-1)
         return embedding, center_score
+
+    def _max(self, x: torch.Tensor, dim: int) -> torch.Tensor:
+        """Max over neighbours. Same values either way: max() has the cheaper backward (indices,
+        not equality masks), amax() exports to a single ReduceMax."""
+        return x.max(dim=dim).values if self.training else x.amax(dim=dim)
 
 
 def fold_batchnorm(model: FPCCNet) -> FPCCNet:
