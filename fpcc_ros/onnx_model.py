@@ -50,6 +50,7 @@ class FpccModel:
             raise ModelLoadError(str(exc)) from exc
         self.session = self._open_session(providers or ["CPUExecutionProvider"], threads)
         self._check_signature()
+        self._check_run()
 
     @property
     def active_providers(self) -> list[str]:
@@ -97,6 +98,41 @@ class FpccModel:
         if problems:
             raise ModelLoadError(f"{self.path} is not an FPCC-Net matching its card: "
                                  + "; ".join(problems) + ". Re-export with `fpcc export`.")
+
+    def _check_run(self) -> None:
+        """One inference on a small synthetic block, checked against the card.
+
+        The signature check cannot see symbolic dimensions (an export with a dynamic k or
+        embedding size passes it whatever the card says), nor a graph that fails only when run;
+        without this, such a model would start and then fail every frame.
+        """
+        from fpcc_ros.features import block_features, knn_graph
+
+        card, n = self.card, max(4 * self.card.k, 64)
+        xyz = np.random.default_rng(0).uniform(0.0, 4.0 * card.part_radius, (n, 3))
+        features = block_features(xyz, card.part_radius)[None]
+        knn = knn_graph(xyz, card.k)[None]
+        try:
+            embedding, score = self.run(features, knn)
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types
+            raise ModelLoadError(
+                f"{self.path}: a test inference on {n} points with the card's k={card.k} failed "
+                f"({exc}); the model and its card {card_path_for(self.path)} disagree. Re-export "
+                "with `fpcc export`.") from exc
+        problems = []
+        if np.shape(embedding) != (1, n, card.embedding_dim):
+            problems.append(f"'embedding' came out {list(np.shape(embedding))}, the card says "
+                            f"[1, {n}, {card.embedding_dim}]")
+        if np.shape(score) != (1, n):
+            problems.append(f"'center_score' came out {list(np.shape(score))}, expected [1, {n}]")
+        elif not (np.isfinite(score).all() and score.min() >= 0.0 and score.max() <= 1.0):
+            problems.append("'center_score' is not in [0, 1] (a score head without its sigmoid?)")
+        if not problems and not np.isfinite(embedding).all():
+            problems.append("'embedding' has NaN/Inf values")
+        if problems:
+            raise ModelLoadError(f"{self.path} does not behave as its card "
+                                 f"{card_path_for(self.path)} says: " + "; ".join(problems)
+                                 + ". Re-export with `fpcc export`.")
 
     def run(self, features: np.ndarray, knn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One block (or a batch of equal-sized blocks): (B,N,6), (B,N,K) -> (B,N,128), (B,N)."""
