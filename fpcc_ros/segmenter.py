@@ -8,6 +8,7 @@ never works through a queue of stale frames (dropped frames are counted and repo
 from __future__ import annotations
 
 import math
+import os
 import sys
 import threading
 import time
@@ -21,6 +22,7 @@ from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, DurabilityPolicy)
@@ -106,7 +108,13 @@ PARAMS = (
 
 
 class _WarnThrottle:
-    """One warning per distinct problem per period, with a count of the ones held back."""
+    """One warning per distinct problem per period, with a count of the ones held back.
+
+    ``key`` must come from a small fixed set (a problem kind, an exception type), never from
+    message text: text carries the publisher's values, which would defeat the throttle.
+    """
+
+    MAX_TEXT = 600  # a hostile header (thousands of fields, huge names) must not flood the log
 
     def __init__(self, logger: Any, period_s: float = 5.0):
         self._logger, self._period = logger, period_s
@@ -117,6 +125,8 @@ class _WarnThrottle:
         last, held = self._last.get(key, (-math.inf, 0))
         if now - last >= self._period:
             more = f" ({held} more like this since the last warning)" if held else ""
+            if len(text) > self.MAX_TEXT:
+                text = text[:self.MAX_TEXT] + "..."
             self._logger.warning(text + more)
             self._last[key] = (now, 0)
         else:
@@ -237,10 +247,22 @@ class SegmenterNode(Node):
                 while self._newest is None and self._running:
                     self._slot_lock.wait(timeout=0.5)
                 if not self._running:
+                    if self._newest is not None:
+                        self.stats.dropped_at_shutdown += 1
+                        self._newest = None
                     return
                 msg, received_at = self._newest
                 self._newest = None
-            self._process(msg, received_at)
+            try:
+                self._process(msg, received_at)
+            except Exception as exc:  # noqa: BLE001 - the worker must outlive any one frame
+                if not self._running or not self.context.ok():
+                    # shutting down (SIGINT/SIGTERM): the frame in flight cannot be published
+                    self.stats.dropped_at_shutdown += 1
+                    return
+                self.stats.failed += 1
+                self._throttle.warn(f"err:{type(exc).__name__}",
+                                    f"frame failed ({type(exc).__name__}: {exc}); continuing")
 
     def _process(self, msg: PointCloud2, received_at: float) -> None:
         max_age = float(self.get_parameter("max_input_age").value)
@@ -254,7 +276,7 @@ class SegmenterNode(Node):
             out = process_cloud(msg, pipeline, RCLPY)
         except CloudFormatError as exc:
             self.stats.invalid += 1
-            self._throttle.warn(f"bad:{str(exc)[:40]}", f"dropped a malformed PointCloud2: {exc}")
+            self._throttle.warn(f"bad:{exc.kind}", f"dropped a malformed PointCloud2: {exc}")
             return
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the node
             self.stats.failed += 1
@@ -272,17 +294,27 @@ class SegmenterNode(Node):
 
     def _report(self) -> None:
         s = self.stats.snapshot()
-        if s["published"]:
+        if s["received"]:
             self.get_logger().info(
                 f"{s['published']} frames out, {s['dropped_stale']} stale dropped, "
                 f"{s['invalid']} invalid, {s['failed']} failed; latency median "
                 f"{s['latency_ms_median']:.0f} ms, last {s['last_instances']} instances")
 
-    def stop_worker(self) -> None:
+    def totals(self) -> str:
+        """One line accounting for every frame received (none lost silently); logged at exit."""
+        s = self.stats.snapshot()
+        return (
+            f"totals: received {s['received']}, published {s['published']}, invalid "
+            f"{s['invalid']}, failed {s['failed']}, dropped_stale {s['dropped_stale']}, "
+            f"skipped_old {s['skipped_old']}, dropped_at_shutdown {s['dropped_at_shutdown']}")
+
+    def stop_worker(self, timeout_s: float = 5.0) -> bool:
+        """Stop taking frames and wait for the one in flight; False if it is still running."""
         with self._slot_lock:
             self._running = False
             self._slot_lock.notify()
-        self._worker.join(timeout=5.0)
+        self._worker.join(timeout=timeout_s)
+        return not self._worker.is_alive()
 
 
 class _Stats:
@@ -290,6 +322,7 @@ class _Stats:
 
     def __init__(self) -> None:
         self.received = self.dropped_stale = self.invalid = self.failed = self.skipped_old = 0
+        self.dropped_at_shutdown = 0
         self.published = 0
         self.last_instances = 0
         self._latency = deque(maxlen=200)
@@ -304,6 +337,7 @@ class _Stats:
         return {"received": self.received, "published": self.published,
                 "dropped_stale": self.dropped_stale, "invalid": self.invalid,
                 "failed": self.failed, "skipped_old": self.skipped_old,
+                "dropped_at_shutdown": self.dropped_at_shutdown,
                 "last_instances": self.last_instances,
                 "latency_ms_median": float(np.median(lat)) if lat else math.nan}
 
@@ -312,7 +346,8 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = SegmenterNode()
-    except (ModelLoadError, ConfigError) as exc:
+    except (ModelLoadError, ConfigError, ParameterException) as exc:
+        # ParameterException: a -p value of the wrong type or out of its declared range
         print(f"[{NODE_NAME}] cannot start: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
@@ -323,10 +358,23 @@ def main(args: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.stop_worker()
+        finished = node.stop_worker()
+        totals = node.totals()
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
+        # After destroy_node: the node logger no longer tries to publish on the (already shut
+        # down) /rosout, it only prints.
+        logger = rclpy.logging.get_logger(NODE_NAME)
+        logger.info(totals)
+        if not finished:
+            # A frame is still inside onnxruntime/numpy. Letting the interpreter finalize under
+            # it aborts in C++ static destructors ("terminate called ..."); leave at once instead.
+            logger.warning("1 more frame was still being processed 5 s after shutdown was "
+                           "requested; exiting without it")
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(0)
     return 0
 
 
