@@ -53,7 +53,7 @@ _UINT32_LIMIT = 2**32
 class CloudFormatError(ValueError):
     """A PointCloud2 we cannot read; the message names the field, the value and the fix.
 
-    ``kind`` is a short fixed name of the problem (``"data_length"``, ``"missing_xyz"`` ...):
+    ``kind`` names the problem from a small fixed set (``"data_truncated"``, ``"missing_y"``...):
     the message text carries the publisher's numbers and field names, so it cannot key a
     warning throttle or a counter without growing with every distinct value.
     """
@@ -191,19 +191,19 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
             raise CloudFormatError(
                 f"PointCloud2 has no field {axis!r} (fields: {', '.join(seen) or 'none'}); the cloud "
                 f"needs x, y, z fields of datatype FLOAT32 (7) or FLOAT64 (8)",
-                kind="missing_xyz",
+                kind=f"missing_{axis}",
             )
         if f.datatype not in (FLOAT32, FLOAT64):
             raise CloudFormatError(
                 f"PointCloud2 field {axis!r} has datatype {_dtname(f.datatype)}; x, y, z must be "
                 f"FLOAT32 (7) or FLOAT64 (8) in metres: convert the coordinates to float before "
                 f"publishing (e.g. depth_image_proc/point_cloud_xyz for depth images)",
-                kind="xyz_datatype",
+                kind=f"{axis}_datatype",
             )
         if f.count != 1:
             raise CloudFormatError(
                 f"PointCloud2 field {axis!r} has count {f.count}; x, y, z must each have count 1",
-                kind="xyz_count",
+                kind=f"{axis}_count",
             )
     min_row = width * point_step
     if row_step < min_row:
@@ -219,7 +219,7 @@ def validate_cloud(msg: Any, max_points: int = MAX_POINTS) -> None:
         raise CloudFormatError(
             f"PointCloud2 data has {have} bytes but row_step*height = {row_step}*{height} = "
             f"{expected}: the message is {what}; check the publisher's row_step/height/data",
-            kind="data_length",
+            kind="data_truncated" if have < expected else "data_too_long",
         )
 
 
