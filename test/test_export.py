@@ -172,3 +172,30 @@ def test_committed_tiny_model_is_reproducible(tmp_path):
     export_untrained(fresh, k=16, seed=0, part_radius=0.05)
     for a, b in zip(_run_random(COMMITTED, 16), _run_random(fresh, 16)):
         np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-3)  # float noise of thread counts
+
+
+def test_validate_scores_the_postprocess_labels(scenes):
+    scene = load_scene(next((scenes / "val").glob("*.npz")))
+    model = FPCCNet(TINY)
+    perfect = train_mod.validate(model, [scene], TINY_CONFIG, postprocess=lambda sc, pred, cfg: sc.instance)
+    assert perfect["val_precision"] == 1.0 and perfect["val_recall"] == 1.0
+    assert perfect["val_loss"] > 0 and 0 <= perfect["val_center_mae"] <= 1
+    seen = []
+
+    def nothing(sc, pred, cfg):
+        seen.append(pred)
+        return np.zeros(len(sc.xyz), np.int32)
+
+    empty = train_mod.validate(model, [scene], TINY_CONFIG, postprocess=nothing)
+    assert empty["val_precision"] == 0.0 and empty["val_recall"] == 0.0
+    pred = seen[0]                 # per downsampled point, mapped back to every scene point
+    assert pred.embedding.shape == (len(pred.rep), 128) and pred.inverse.shape == (len(scene.xyz),)
+    np.testing.assert_array_equal(pred.xyz, scene.xyz[pred.rep])
+    assert "val_precision" not in train_mod.validate(model, [scene], TINY_CONFIG, postprocess=None)
+
+
+def test_cosine_learning_rate():
+    cfg = TrainConfig(epochs=10, lr=1e-3, min_lr_fraction=0.01)
+    assert train_mod.lr_at(cfg, 0) == pytest.approx(1e-3)
+    assert train_mod.lr_at(cfg, 5) == pytest.approx(0.5 * (1e-3 + 1e-5))
+    assert train_mod.lr_at(cfg, 10) == pytest.approx(1e-5)

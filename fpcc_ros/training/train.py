@@ -144,16 +144,21 @@ def _plain(value: Any) -> Any:
 # ----------------------------------------------------------------------------- validation
 
 @torch.no_grad()
-def predict_scene(model: FPCCNet, scene: Scene, data: DataConfig) -> ScenePrediction:
-    """Run the model on every block of a scene (no augmentation), as the runtime does."""
+def predict_scene(model: FPCCNet, scene: Scene, data: DataConfig,
+                  on_block: Callable[[dict, torch.Tensor, torch.Tensor], None] | None = None) -> ScenePrediction:
+    """Run the model on every block of a scene (no augmentation), as the runtime does.
+    ``on_block(batch, embedding, center_score)`` sees each block that holds part points."""
     model.eval()
     cut = scene_blocks(scene, data, rng=None, skip_empty=False)
     n = len(cut.rep)
     embedding = np.zeros((n, model.config.embedding_dim), np.float32)
     score = np.zeros(n, np.float32)
     for block in cut.blocks:
-        emb, s = model(torch.from_numpy(block.features)[None], torch.from_numpy(block.knn)[None])
+        batch = collate([block])
+        emb, s = model(batch["features"], batch["knn"])
         embedding[block.index], score[block.index] = emb[0].numpy(), s[0].numpy()
+        if on_block is not None and (block.instance > 0).any():
+            on_block(batch, emb, s)
     return ScenePrediction(cut.rep, cut.inverse, scene.xyz[cut.rep], embedding, score)
 
 
@@ -185,13 +190,11 @@ def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
     model.eval()
     losses, abs_err, n_pts = [], 0.0, 0
     visible, paper = InstanceCounts(), InstanceCounts()
+    def block_loss(batch: dict, emb: torch.Tensor, s: torch.Tensor) -> None:
+        losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1, config.eps2)])
+
     for scene in scenes:
-        for block in scene_blocks(scene, config.data, rng=None, skip_empty=True).blocks:
-            batch = collate([block])
-            emb, s = model(batch["features"], batch["knn"])
-            losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1,
-                                                        config.eps2)])
-        pred = predict_scene(model, scene, config.data)
+        pred = predict_scene(model, scene, config.data, on_block=block_loss)
         abs_err += float(np.abs(pred.center_score - scene.center_score[pred.rep]).sum())
         n_pts += len(pred.rep)
         if postprocess is not None:
