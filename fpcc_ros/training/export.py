@@ -39,12 +39,18 @@ def export_onnx(model: FPCCNet, path: str | Path, k: int) -> Path:
         try:
             torch.onnx.export(folded, (features, knn), str(path), dynamo=False,
                               dynamic_axes=dynamic_axes, do_constant_folding=True, **kwargs)
-        except (TypeError, RuntimeError, NotImplementedError):
+        except (TypeError, RuntimeError, NotImplementedError) as legacy_error:
+            # the TorchScript exporter is deprecated; the dynamo one needs a matching onnxscript
+            # (with torch 2.13 the pinned onnxscript 0.5.6 lacks torch_2_11 support)
             batch, points = torch.export.Dim("batch"), torch.export.Dim("points")
             shapes = {"features": {0: batch, 1: points}, "knn": {0: batch, 1: points}}
-            program = torch.onnx.export(folded, (features, knn), dynamo=True,
-                                        dynamic_shapes=shapes, external_data=False, **kwargs)
-            program.save(str(path))
+            try:
+                program = torch.onnx.export(folded, (features, knn), dynamo=True,
+                                            dynamic_shapes=shapes, external_data=False, **kwargs)
+                program.save(str(path))
+            except Exception as dynamo_error:
+                raise RuntimeError(f"ONNX export failed: legacy exporter: {legacy_error}; dynamo "
+                                   f"exporter: {dynamo_error}") from dynamo_error
     return path
 
 
