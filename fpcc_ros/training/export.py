@@ -98,7 +98,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
         name=name or out.stem, k=config.data.k, part_radius=float(part_radius),
         block_size=int(block_size or config.data.block_size), voxel_factor=config.data.voxel_factor,
         screening_factor=config.screening_factor, score_threshold=config.score_threshold,
-        feature_gate=1.0,
+        feature_gate=config.feature_gate,
         description="FPCC-Net (DGCNN backbone on one xyz kNN graph, embedding + center-score heads)",
         trained_on=trained_on,
         training={"command": " ".join(state.get("command", [])), "epochs": len(history),

@@ -320,9 +320,10 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     command = list(command) if command is not None else list(sys.argv)
 
     def save(path: Path, step: int) -> None:
+        tmp = path.with_suffix(".tmp")  # write then rename: a killed run never leaves half a file
         torch.save(_plain_state(model, optimizer, config, epoch, step, sums, history, best,
-                                trained_on, command, wall_before + _now() - start_time),
-                   path)
+                                trained_on, command, wall_before + _now() - start_time), tmp)
+        tmp.replace(path)
 
     def out_of_time() -> bool:
         return config.time_limit_min > 0 and _now() - start_time > 60 * config.time_limit_min
