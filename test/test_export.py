@@ -90,9 +90,9 @@ def test_cli_train_resume_export(scenes, tmp_path):
     assert fpcc(["export", str(run / "checkpoint_last.pt"), "--out", str(onnx_path)]) == 0
     card = load_card(card_path_for(onnx_path))
     assert (card.name, card.k, card.block_size, card.voxel_factor) == ("fake", 8, 256, 0.15)
-    assert card.part_radius == pytest.approx(A)
+    assert card.part_radius == A          # float32 in the NPZ, written as its 7 digits
     assert card.trained_on["num_scenes"] == 3 and card.trained_on["part_names"] == ["ellipsoid"]
-    assert card.training["epochs"] == 3 and "--resume" in card.training["command"]
+    assert card.training["epochs"] == 3 and card.training["command"].startswith("fpcc train --out")
     assert "val_loss" in card.metrics and "val_precision" in card.metrics
 
     # onnxruntime agrees with torch on a real block of the validation scene, at another N and B

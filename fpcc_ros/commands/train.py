@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         net=TINY if args.net == "tiny" else NetConfig())
     try:
         summary = train(config, args.data, args.out, val=args.val, init=args.init,
-                        resume=args.resume, command=sys.argv)
+                        resume=args.resume, command=["fpcc", *sys.argv[1:]])
     except (FileNotFoundError, ValueError) as exc:
         print(f"fpcc train: {exc}", file=sys.stderr)
         return 2

@@ -82,7 +82,7 @@ def load_scene(path: str | Path) -> Scene:
         points = np.asarray(npz["points"], dtype=np.float32)
         instance = np.asarray(npz["instance"])
         score = np.asarray(npz["center_score"], dtype=np.float32)
-        part_radius = float(np.asarray(npz["part_radius"]))
+        part_radius = float(f"{float(np.asarray(npz['part_radius'])):.7g}")  # float32 -> 7 digits
         part_name = str(np.asarray(npz["part_name"])) if "part_name" in npz else ""
     if points.ndim not in (2, 3) or points.shape[-1] != 3:
         raise ValueError(f"scene {path}: points has shape {points.shape}; expected (N, 3) or (H, W, 3)")
