@@ -28,11 +28,20 @@ def assign_to_centers(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarra
     is itself within d_max, and otherwise assigns the point to the best admissible center
     instead of discarding it.
     """
+    return assign_to_center_points(xyz, embedding, xyz[centers], embedding[centers], d_max,
+                                   feature_gate)
+
+
+def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: np.ndarray,
+                            center_embedding: np.ndarray, d_max: float,
+                            feature_gate: float = np.inf) -> np.ndarray:
+    """:func:`assign_to_centers` with the centers given by position and embedding, for when the
+    centers' embeddings come from another network pass than the points' own rows."""
     n = len(xyz)
-    if len(centers) == 0 or n == 0:
+    if len(center_xyz) == 0 or n == 0:
         return np.zeros(n, dtype=np.int32)
-    feat_sq = _squared_distances(embedding, embedding[centers])
-    space_sq = _squared_distances(xyz, xyz[centers])
+    feat_sq = _squared_distances(embedding, center_embedding)
+    space_sq = _squared_distances(xyz, center_xyz)
     feat_sq[space_sq > d_max * d_max] = np.inf
     best = np.argmin(feat_sq, axis=1)
     best_sq = feat_sq[np.arange(n), best]

@@ -11,8 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from fpcc_ros.clustering import assign_to_centers
-from fpcc_ros.features import block_features, knn_graph, spatial_blocks, voxel_downsample
+from fpcc_ros.clustering import assign_to_center_points, assign_to_centers
+from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
+                               spatial_blocks, voxel_downsample)
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
@@ -38,6 +39,8 @@ class PipelineConfig:
     feature_gate: float = 1.0
     voxel_factor: float = 0.08
     block_size: int = 4096
+    block_halo: float = 1.0   # context around each block, in part radii
+    remove_floor: bool = True  # drop the dominant plane (floor around the tote) before the net
 
     @classmethod
     def from_card(cls, card: ModelCard, **overrides: Any) -> "PipelineConfig":
@@ -78,6 +81,8 @@ class PipelineConfig:
              "voxel_size", "0 (off), a size in metres, or -1 (auto: voxel_factor * part_radius)")
         need(_finite(self.feature_gate) and self.feature_gate > 0, "feature_gate", "> 0")
         need(isinstance(self.block_size, int) and self.block_size >= 32, "block_size", ">= 32")
+        need(_finite(self.block_halo) and 0 <= self.block_halo <= 5, "block_halo",
+             "between 0 and 5 part radii")
         if (self.roi_min is None) != (self.roi_max is None):
             raise ConfigError("roi_min and roi_max must be set together (or both empty for no crop)")
         if self.roi_min is not None and any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
@@ -122,6 +127,27 @@ def cluster_points(xyz: np.ndarray, embedding: np.ndarray, center_score: np.ndar
     return assign_to_centers(xyz, embedding, centers, config.part_radius, config.feature_gate)
 
 
+@dataclass
+class _BlockRun:
+    """One network pass: ``core`` points (owned by this block) plus a halo for context."""
+
+    core: np.ndarray        # indices into the network points, first rows of the pass
+    ext: np.ndarray         # core followed by halo indices
+    embedding: np.ndarray   # (len(ext), D)
+    score: np.ndarray       # (len(core),)
+
+    def assign(self, xyz: np.ndarray, centers: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
+        """Global labels (center rank + 1, 0 = none) for the core points."""
+        row = np.full(len(xyz), -1, np.int64)
+        row[self.ext] = np.arange(len(self.ext))
+        reachable = np.flatnonzero(row[centers] >= 0)
+        local = assign_to_center_points(
+            xyz[self.core], self.embedding[:len(self.core)], xyz[centers[reachable]],
+            self.embedding[row[centers[reachable]]], cfg.part_radius, cfg.feature_gate)
+        global_ids = np.concatenate([[0], reachable + 1]).astype(np.int32)
+        return global_ids[local]
+
+
 class Pipeline:
     """A model plus its settings; ``segment(xyz)`` is the whole per-frame job."""
 
@@ -147,21 +173,29 @@ class Pipeline:
         net_xyz = pts[keep]
         clock.lap("downsample")
 
-        # 3-4. features per spatial block, FPCC-Net per block
-        embedding = np.zeros((len(net_xyz), self.model.card.embedding_dim), np.float32)
-        score = np.zeros(len(net_xyz), np.float32)
-        for block in spatial_blocks(net_xyz, cfg.block_size) if len(net_xyz) else []:
-            block_xyz = net_xyz[block]
-            feats = block_features(block_xyz, cfg.part_radius)[None]
-            knn = knn_graph(block_xyz, self.model.card.k)[None]
-            clock.lap("features")
-            emb, sc = self.model.run(feats, knn)
-            embedding[block], score[block] = emb[0], sc[0]
-            clock.lap("inference")
+        # 2b. the floor around the tote (largest plane) carries no instance: skip it
+        on_floor = dominant_plane(net_xyz, plane_tolerance(cfg.part_radius)) \
+            if cfg.remove_floor else np.zeros(len(net_xyz), bool)
+        floor_free = np.flatnonzero(~on_floor)
+        clock.lap("floor")
 
-        # 5-6. NMS on center scores, nearest center in feature space with the d_max rule
-        net_labels = cluster_points(net_xyz, embedding, score, cfg) if len(net_xyz) else \
-            np.zeros(0, np.int32)
+        # 3-4. FPCC-Net per spatial block, each run with a halo of neighbours around it
+        runs = [self._run_block(net_xyz, floor_free[core], floor_free, clock) for core in
+                (spatial_blocks(net_xyz[floor_free], cfg.block_size) if len(floor_free) else [])]
+        score = np.zeros(len(net_xyz), np.float32)
+        for run in runs:
+            score[run.core] = run.score
+
+        # 5. NMS on center scores over the whole scene
+        centers = nms_centers(net_xyz, score, cfg.score_threshold,
+                              cfg.screening_factor * cfg.part_radius)
+
+        # 6. nearest center in feature space (within d_max in 3D); each block compares its
+        #    points with the centers' embeddings from the same network pass (embeddings of
+        #    different passes are not comparable)
+        net_labels = np.zeros(len(net_xyz), np.int32)
+        for run in runs:
+            net_labels[run.core] = run.assign(net_xyz, centers, cfg)
         clock.lap("cluster")
 
         # 7. labels back to every input point; drop small instances; centroids
@@ -176,6 +210,24 @@ class Pipeline:
         return SegmentationResult(labels=labels, center_score=center_score, centroids=centroids,
                                   point_counts=counts, num_valid=len(valid_idx),
                                   num_network_points=len(net_xyz), timings_ms=clock.laps)
+
+
+    def _run_block(self, xyz: np.ndarray, core: np.ndarray, candidates: np.ndarray,
+                   clock: "_StageClock") -> _BlockRun:
+        """Network pass over ``core`` plus the ``candidates`` within the halo around it."""
+        cfg = self.config
+        halo = cfg.block_halo * cfg.part_radius
+        lo, hi = xyz[core].min(axis=0) - halo, xyz[core].max(axis=0) + halo
+        inside = np.zeros(len(xyz), bool)
+        inside[candidates] = ((xyz[candidates] >= lo) & (xyz[candidates] <= hi)).all(axis=1)
+        inside[core] = False
+        ext = np.concatenate([core, np.flatnonzero(inside)])
+        feats = block_features(xyz[ext], cfg.part_radius)[None]
+        knn = knn_graph(xyz[ext], self.model.card.k)[None]
+        clock.lap("features")
+        emb, sc = self.model.run(feats, knn)
+        clock.lap("inference")
+        return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
 
 
 def _drop_small_instances(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:

@@ -68,7 +68,7 @@ def write_fake_scenes(folder: Path, count: int = 3, organised_first: bool = True
     return paths
 
 
-SMALL = DataConfig(k=8, block_size=256, voxel_factor=0.15)
+SMALL = DataConfig(k=8, block_size=256, voxel_factor=0.15, remove_floor=False)
 
 
 def test_fake_scene_center_scores_follow_the_formula():
@@ -135,8 +135,8 @@ def test_scene_blocks_cover_every_representative_once():
 
 def test_voxel_factor_sets_the_density():
     scene = load_scene_dict(fake_scene(1))
-    coarse = scene_blocks(scene, DataConfig(k=8, block_size=256, voxel_factor=0.3), skip_empty=False)
-    fine = scene_blocks(scene, DataConfig(k=8, block_size=256, voxel_factor=0.1), skip_empty=False)
+    coarse = scene_blocks(scene, DataConfig(k=8, block_size=256, voxel_factor=0.3, remove_floor=False), skip_empty=False)
+    fine = scene_blocks(scene, DataConfig(k=8, block_size=256, voxel_factor=0.1, remove_floor=False), skip_empty=False)
     assert len(fine.rep) > 4 * len(coarse.rep)  # 3x finer voxels on a surface: ~9x the points
 
 
@@ -192,7 +192,7 @@ def test_fixed_dataset_batches_cover_all_blocks(tmp_path):
 
 def test_collate_pads_by_repeating_points():
     scene = load_scene_dict(fake_scene(2))
-    blocks = scene_blocks(scene, DataConfig(k=8, block_size=100, voxel_factor=0.15)).blocks
+    blocks = scene_blocks(scene, DataConfig(k=8, block_size=100, voxel_factor=0.15, remove_floor=False)).blocks
     small, big = sorted(blocks, key=lambda b: len(b.xyz))[0], sorted(blocks, key=lambda b: len(b.xyz))[-1]
     assert len(small.xyz) < len(big.xyz)
     batch = collate([big, small])

@@ -17,7 +17,8 @@ from fpcc_ros.training.model import TINY, FPCCNet
 from fpcc_ros.training.train import TrainConfig, load_checkpoint, model_from_checkpoint, resolve_init, train
 from test_dataset import A, write_fake_scenes
 
-SMALL = DataConfig(k=8, block_size=256, voxel_factor=0.15)
+# floor kept: these tests exercise step counting, and the fake floor would vanish into few blocks
+SMALL = DataConfig(k=8, block_size=256, voxel_factor=0.15, remove_floor=False)
 TINY_CONFIG = TrainConfig(epochs=1, batch=4, data=SMALL, net=TINY, threads=1)
 TRAIN_ARGS = ["--net", "tiny", "--k", "8", "--block-size", "256", "--voxel-factor", "0.15",
               "--threads", "1"]

@@ -20,7 +20,8 @@ from typing import Iterator, Sequence
 import numpy as np
 import torch
 
-from fpcc_ros.features import block_features, knn_graph, spatial_blocks, voxel_downsample
+from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
+                               spatial_blocks, voxel_downsample)
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,7 @@ class DataConfig:
     scale_jitter: tuple[float, float] = (0.9, 1.1)
     max_dropout: float = 0.15
     rotate: bool = True
+    remove_floor: bool = True   # as the runtime pipeline does (fpcc_ros.pipeline step 2b)
 
 
 @dataclass
@@ -142,6 +144,10 @@ def scene_blocks(scene: Scene, config: DataConfig, rng: np.random.Generator | No
     if rng is not None and config.max_dropout > 0:
         keep = keep[rng.random(len(keep)) >= rng.uniform(0, config.max_dropout)]
         inverse = None
+    if config.remove_floor:
+        on_floor = dominant_plane(xyz[keep].astype(np.float64), plane_tolerance(scene.part_radius))
+        if on_floor.any():
+            keep, inverse = keep[~on_floor], None
     blocks = blocks_from_points(xyz[keep], scene.instance[keep], scene.center_score[keep],
                                 scene.part_radius, config.block_size, config.k, skip_empty)
     return SceneBlocks(rep=keep, inverse=inverse, blocks=blocks)

@@ -83,6 +83,7 @@ class ScenePrediction:
     xyz: np.ndarray
     embedding: np.ndarray
     center_score: np.ndarray
+    model: Any = None          # the network that made it, for postprocessing that reruns it
 
 
 Postprocess = Callable[[Scene, ScenePrediction, TrainConfig], np.ndarray]
@@ -159,23 +160,39 @@ def predict_scene(model: FPCCNet, scene: Scene, data: DataConfig,
         embedding[block.index], score[block.index] = emb[0].numpy(), s[0].numpy()
         if on_block is not None and (block.instance > 0).any():
             on_block(batch, emb, s)
-    return ScenePrediction(cut.rep, cut.inverse, scene.xyz[cut.rep], embedding, score)
+    return ScenePrediction(cut.rep, cut.inverse, scene.xyz[cut.rep], embedding, score, model)
+
+
+class TorchBlockModel:
+    """The torch network behind the runtime model interface (``card`` + ``run``), so validation
+    runs the node's own :class:`fpcc_ros.pipeline.Pipeline` (voxels, floor removal, blocks with
+    halos, NMS, clustering, min_points) on exactly what the exported ONNX would compute."""
+
+    def __init__(self, net: FPCCNet, config: "TrainConfig"):
+        from fpcc_ros.model_card import ModelCard
+        self.net = net
+        self.card = ModelCard(name="validation", k=config.data.k, part_radius=1.0,
+                              block_size=config.data.block_size,
+                              voxel_factor=config.data.voxel_factor,
+                              embedding_dim=net.config.embedding_dim)
+
+    @torch.no_grad()
+    def run(self, features: np.ndarray, knn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.net.eval()
+        emb, score = self.net(torch.from_numpy(features), torch.from_numpy(knn))
+        return emb.numpy(), score.numpy()
 
 
 def runtime_postprocess(scene: Scene, pred: ScenePrediction, config: TrainConfig) -> np.ndarray:
-    """Labels per scene point from the runtime's own clustering (fpcc_ros.pipeline.cluster_points:
-    NMS on center scores, nearest center in feature space, d_max and feature gates), then the
-    runtime's ``min_points`` rule (instances with fewer input points get label 0)."""
-    from fpcc_ros.pipeline import PipelineConfig, cluster_points
+    """Labels per scene point from the runtime Pipeline itself, run on the prediction's network."""
+    from fpcc_ros.pipeline import Pipeline, PipelineConfig
 
     runtime = PipelineConfig(part_radius=scene.part_radius, screening_factor=config.screening_factor,
                              score_threshold=config.score_threshold, feature_gate=config.feature_gate,
                              voxel_factor=config.data.voxel_factor, block_size=config.data.block_size,
-                             min_points=config.min_points)
-    labels = cluster_points(pred.xyz, pred.embedding, pred.center_score, runtime)[pred.inverse]
-    small = np.bincount(labels) < max(runtime.min_points, 1)
-    small[0] = False
-    return np.where(small[labels], 0, labels).astype(np.int32)
+                             min_points=config.min_points, remove_floor=config.data.remove_floor)
+    pipeline = Pipeline(TorchBlockModel(pred.model, config), runtime)
+    return pipeline.segment(scene.xyz).labels.astype(np.int32)
 
 
 @torch.no_grad()

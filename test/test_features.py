@@ -1,0 +1,57 @@
+"""Network-input helpers shared by runtime and training, on cases checked by hand."""
+import numpy as np
+
+from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
+                               spatial_blocks, voxel_downsample)
+
+
+def test_voxel_downsample_keeps_one_real_point_per_voxel_and_maps_back():
+    xyz = np.array([[0.01, 0.01, 0], [0.02, 0.03, 0], [0.15, 0.0, 0], [0.16, 0.01, 0.0]])
+    keep, inverse = voxel_downsample(xyz, 0.1)
+    # voxels: points 0,1 share (0,0,0); points 2,3 share (1,0,0)
+    assert len(keep) == 2
+    assert inverse[0] == inverse[1] != inverse[2] == inverse[3]
+    np.testing.assert_array_equal(xyz[keep][inverse[[0, 2]]], xyz[keep])
+
+
+def test_spatial_blocks_partition_and_respect_the_size():
+    xyz = np.random.default_rng(0).uniform(0, 1, (1000, 3))
+    blocks = spatial_blocks(xyz, 128)
+    assert all(len(b) <= 128 for b in blocks)
+    np.testing.assert_array_equal(np.sort(np.concatenate(blocks)), np.arange(1000))
+
+
+def test_block_features_scale_by_radius_and_normalise_location():
+    xyz = np.array([[1.0, 2.0, 3.0], [1.2, 2.1, 3.4]])
+    f = block_features(xyz, part_radius=0.1)
+    np.testing.assert_allclose(f[1, :3], [2.0, 1.0, 4.0], rtol=1e-6)   # (0.2, 0.1, 0.4) / 0.1
+    np.testing.assert_allclose(f[1, 3:], [1.0, 1.0, 1.0])
+    np.testing.assert_allclose(f[0], 0.0)
+
+
+def test_knn_graph_starts_with_self_and_pads_small_blocks():
+    xyz = np.array([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]])
+    knn = knn_graph(xyz, 4)
+    assert knn.shape == (3, 4)
+    assert knn[:, 0].tolist() == [0, 1, 2]
+    assert knn[0].tolist() == [0, 1, 2, 2]   # padded with its farthest neighbour
+
+
+def test_dominant_plane_takes_the_floor_and_spares_parts_above_it():
+    rng = np.random.default_rng(1)
+    floor = np.c_[rng.uniform(-1, 1, (3000, 2)), rng.normal(0, 0.001, 3000)]
+    part = np.c_[rng.uniform(-0.1, 0.1, (500, 2)), rng.uniform(0.02, 0.08, 500)]
+    on_floor = dominant_plane(np.vstack([floor, part]), tolerance=0.005)
+    assert on_floor[:3000].mean() > 0.99
+    assert not on_floor[3000:].any()
+
+
+def test_dominant_plane_removes_nothing_when_no_plane_is_large():
+    rng = np.random.default_rng(2)
+    pile = rng.uniform(0, 1, (2000, 3))
+    assert not dominant_plane(pile, tolerance=0.005).any()
+
+
+def test_plane_tolerance_is_bounded():
+    assert plane_tolerance(0.001) == 0.004 and plane_tolerance(10.0) == 0.012
+    assert plane_tolerance(0.08) == 0.008
