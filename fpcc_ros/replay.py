@@ -121,7 +121,7 @@ class CloudClient(Node):
     def _on_output(self, name: str, msg: Any) -> None:
         now = time.perf_counter()
         with self._lock:
-            record = self.records.get(stamp_ns(msg.header))
+            record = self.records.get(output_stamp_ns(msg))
             if record is None or name in record.outputs:
                 self.unmatched.append((name, msg))
             else:
@@ -159,6 +159,14 @@ class CloudClient(Node):
     def close(self) -> None:
         self._executor.shutdown()
         self.destroy_node()
+
+
+def output_stamp_ns(msg: Any) -> int | None:
+    """Stamp of an output message; a MarkerArray carries it on its markers (DELETEALL first)."""
+    if hasattr(msg, "header"):
+        return stamp_ns(msg.header)
+    markers = getattr(msg, "markers", None)
+    return stamp_ns(markers[0].header) if markers else None
 
 
 def _join(namespace: str, topic: str) -> str:

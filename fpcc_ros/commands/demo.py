@@ -44,9 +44,13 @@ def run(args: argparse.Namespace) -> int:
                 "-r", "instance_markers:=/fpcc_demo/instance_markers"]
     if args.model:
         ros_args += ["-p", f"model:={Path(args.model).resolve()}"]
+    info_path = args.bag.with_suffix(".json")
+    if args.part_radius is None and info_path.is_file():
+        import json
+        args.part_radius = json.loads(info_path.read_text()).get("part_radius")
+        print(f"part_radius {args.part_radius} m from {info_path}")
     if args.part_radius is not None:
         ros_args += ["-p", f"part_radius:={args.part_radius}"]
-
     env = isolated_ros_env()
     print(f"starting the segmenter node (ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}), "
           f"{len(clouds)} frames from {args.bag}")
