@@ -247,9 +247,7 @@ class SegmenterNode(Node):
                 while self._newest is None and self._running:
                     self._slot_lock.wait(timeout=0.5)
                 if not self._running:
-                    if self._newest is not None:
-                        self.stats.dropped_at_shutdown += 1
-                        self._newest = None
+                    self._drop_pending()
                     return
                 msg, received_at = self._newest
                 self._newest = None
@@ -259,10 +257,18 @@ class SegmenterNode(Node):
                 if not self._running or not self.context.ok():
                     # shutting down (SIGINT/SIGTERM): the frame in flight cannot be published
                     self.stats.dropped_at_shutdown += 1
+                    with self._slot_lock:
+                        self._drop_pending()
                     return
                 self.stats.failed += 1
                 self._throttle.warn(f"err:{type(exc).__name__}",
                                     f"frame failed ({type(exc).__name__}: {exc}); continuing")
+
+    def _drop_pending(self) -> None:
+        """At shutdown: count the frame still waiting in the slot (call with the lock held)."""
+        if self._newest is not None:
+            self.stats.dropped_at_shutdown += 1
+            self._newest = None
 
     def _process(self, msg: PointCloud2, received_at: float) -> None:
         max_age = float(self.get_parameter("max_input_age").value)
