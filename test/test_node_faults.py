@@ -332,8 +332,10 @@ def test_signals_shut_down_cleanly_even_with_a_frame_in_flight(tmp_path, sig):
                 assert client.wait_connected(60), node.log()
                 client.pub.publish(cf.set_stamp(scene(), 1))
                 assert client.take(1, 60) is not None, node.log()
-                client.pub.publish(cf.set_stamp(cf.two_million_points(), 2))
-                time.sleep(1.0)   # typically mid-frame (a 2M cloud takes seconds here)
+                big = cf.two_million_points()
+                for stamp in (2, 3, 4):   # keeps the worker busy: the signal lands mid-frame
+                    client.pub.publish(cf.set_stamp(big, stamp))
+                    time.sleep(0.5)
                 started = time.monotonic()
                 code = node.stop(sig, timeout=20)
                 took = time.monotonic() - started
