@@ -3,7 +3,6 @@
 Bags are built here with msg_tools.bag.BagWriter from cloud_factory clouds (rosbags flavour);
 outputs are read back and checked against the contract with cloud_factory.check_output.
 """
-import shutil
 from pathlib import Path
 
 import numpy as np

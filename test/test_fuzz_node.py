@@ -85,3 +85,5 @@ def test_fuzzed_node_never_crashes_and_publishes_only_for_valid_clouds(tmp_path)
     assert report.warnings < report.invalid_sent
     # memory: the 2M cloud's buffers stay with the allocator, but nothing grows per message
     assert report.rss_after_mb - report.rss_before_mb < 250, report.table()
+    assert report.messages_after_last_big >= 20
+    assert report.rss_after_mb - report.rss_after_last_big_mb < 15, report.table()

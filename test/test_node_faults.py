@@ -6,7 +6,6 @@ parameter faults construct SegmenterNode in this process with a fresh rclpy cont
 over DDS through scripts/fuzz_node.py's Collector.
 """
 import json
-import shutil
 import signal
 import subprocess
 import sys
