@@ -40,6 +40,7 @@ class FpccModel:
 
     def __init__(self, path: Path | str, providers: list[str] | None = None, threads: int = 0):
         self.path = Path(path)
+        self.threads = int(threads)
         if not self.path.is_file():
             raise ModelLoadError(f"model file {self.path} not found; set the 'model' parameter to "
                                  "an exported .onnx (see `fpcc export`) or leave it empty for the "

@@ -189,6 +189,7 @@ class Pipeline:
         # 5. NMS on center scores over the whole scene
         centers = nms_centers(net_xyz, score, cfg.score_threshold,
                               cfg.screening_factor * cfg.part_radius)
+        clock.lap("nms")
 
         # 6. nearest center in feature space (within d_max in 3D); each block compares its
         #    points with the centers' embeddings from the same network pass (embeddings of
