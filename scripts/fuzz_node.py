@@ -165,7 +165,7 @@ class FuzzReport:
     rss_mid_mb: float
     rss_after_mb: float
     rss_peak_mb: float
-    rss_after_last_big_mb: float    # right after the last two-million-point output
+    rss_after_last_big_mb: float    # 10 messages after the last two-million-point output
     messages_after_last_big: int
     totals: dict[str, int]
     warnings: int
@@ -215,7 +215,8 @@ class FuzzReport:
             f"{self.rss_after_mb - self.rss_mid_mb:+.1f} MB over the second half), "
             f"peak {self.rss_peak_mb:.1f} MB; "
             f"{self.rss_after_mb - self.rss_after_last_big_mb:+.1f} MB over the "
-            f"{self.messages_after_last_big} messages after the last 2M cloud",
+            f"last {self.messages_after_last_big} messages (from the 10th after the last 2M "
+            f"cloud)",
         ]
         return "\n".join(lines)
 
@@ -271,7 +272,7 @@ def run_fuzz(messages: int = 2000, big: int = 2, seed: int = 0, model: Path = TI
     rclpy.init(context=context)
     t0 = time.monotonic()
     rss_before = rss_mid = rss_after = peak = rss_big = float("nan")
-    after_big = 0
+    after_big = -10**9   # counts messages after the last 2M cloud
     exit_code, crashes = None, 0
     try:
         with NodeProcess(args, log_path=log_path) as node:
@@ -310,8 +311,7 @@ def run_fuzz(messages: int = 2000, big: int = 2, seed: int = 0, model: Path = TI
                                     raise AssertionError("canary labels changed")
                             row.correct += 1
                             if kind is cf.TWO_MILLION:
-                                time.sleep(0.5)   # its buffers freed
-                                rss_big, after_big = rss_mb(node.proc.pid)[0], -1
+                                after_big = -1
                         except AssertionError as exc:
                             counts["wrong"] += 1
                             row.problems.append(str(exc).splitlines()[0][:80] or "wrong output")
@@ -320,6 +320,8 @@ def run_fuzz(messages: int = 2000, big: int = 2, seed: int = 0, model: Path = TI
                         sent_invalid[stamp] = kind.name
                         time.sleep(gap_s)
                     after_big += 1
+                    if after_big == 10:   # the node no longer holds the 2M message
+                        rss_big = rss_mb(node.proc.pid)[0]
                     if i == 1:
                         rss_before = rss_mb(node.proc.pid)[0]
                     if i == len(seq) // 2:
@@ -356,7 +358,7 @@ def run_fuzz(messages: int = 2000, big: int = 2, seed: int = 0, model: Path = TI
         canary_changed=counts["canary_changed"], crashes=crashes, exit_code=exit_code,
         rss_before_mb=rss_before, rss_mid_mb=rss_mid, rss_after_mb=rss_after, rss_peak_mb=peak,
         rss_after_last_big_mb=rss_big if not np.isnan(rss_big) else rss_before,
-        messages_after_last_big=after_big if not np.isnan(rss_big) else len(seq) - 1,
+        messages_after_last_big=after_big - 10 if not np.isnan(rss_big) else len(seq) - 1,
         totals=parse_totals(log), warnings=warnings, warned_kinds_missing=missing_phrases,
         duration_s=time.monotonic() - t0, log=log)
 
