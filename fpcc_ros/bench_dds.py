@@ -213,7 +213,8 @@ def summarise(rate_hz: float, seconds: float, sent: dict[int, float],
     slope = float(np.polyfit(t_out - start, ages, 1)[0]) if len(ages) > 3 else float("nan")
     thirds = np.array_split(ages, 3) if len(ages) >= 6 else []
     growth = float(np.median(thirds[-1]) - np.median(thirds[0])) if len(thirds) else float("nan")
-    out_rate = len(order) / seconds if seconds else float("nan")
+    # outputs that arrived while frames were being sent: a queue drained afterwards is no rate
+    out_rate = float((t_out <= start + seconds).sum()) / seconds if seconds else float("nan")
     age_limit = 2.0 * period + 0.25 if math_ok(period) else float("nan")
     no_queue = bool(len(ages) >= 3 and math_ok(period) and float(np.percentile(ages, 90)) <= age_limit
                     and (not math_ok(growth) or growth <= max(0.5 * period, 0.05)))

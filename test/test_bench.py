@@ -1,0 +1,172 @@
+"""`fpcc bench`: a smoke run on one tiny generated scene with the tiny model, the report's
+derived figures on hand-made numbers, and the DDS summary's queue verdict on synthetic timings."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fpcc_ros import bench
+from fpcc_ros.bench_dds import parse_node_log, summarise
+from fpcc_ros.metrics import InstanceCounts
+from fpcc_ros.onnx_model import FpccModel
+from fpcc_ros.pipeline import Pipeline, PipelineConfig
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = REPO / "test" / "data" / "tiny_fpcc.onnx"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("bench_cache")
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(cache) -> list[bench.BenchScene]:
+    pytest.importorskip("pybullet")
+    return bench.synth_scenes([4], cache=cache, crops=(0.5,), width=96, height=72)
+
+
+@pytest.fixture(scope="module")
+def tiny_pipeline() -> Pipeline:
+    model = FpccModel(TINY, threads=1)
+    return Pipeline(model, PipelineConfig.from_card(model.card))
+
+
+def test_scenes_are_cached_and_organized(tiny_scene, cache, monkeypatch):
+    scene, crop = tiny_scene
+    assert (scene.kind, crop.kind) == ("synth", "crop")
+    assert (int(scene.msg.height), int(scene.msg.width)) == (72, 96)
+    assert scene.gt is not None and scene.gt.shape == (72 * 96,)
+    assert scene.center_score is not None and scene.center_score.shape == (72 * 96,)
+    # the crop is the central window of half the area: round(72 * 0.707) x round(96 * 0.707)
+    assert (int(crop.msg.height), int(crop.msg.width)) == (51, 68)
+    assert len(list(cache.glob("*.npz"))) == 1
+    # a second call reads the cache instead of simulating again
+    import fpcc_ros.training.synth as synth
+
+    monkeypatch.setattr(synth, "generate_scene", lambda *a, **k: pytest.fail("regenerated"))
+    again = bench.synth_scenes([4], cache=cache, crops=(), width=96, height=72)
+    assert np.array_equal(again[0].gt, scene.gt)
+
+
+def test_bench_smoke(tiny_scene, tiny_pipeline, tmp_path):
+    scene = tiny_scene[0]
+    report = bench.run_bench(tiny_pipeline, tiny_scene, runs=2, full_res=True,
+                             postprocess_scene=scene)
+    assert [r.name for r in report.scenes] == [s.name for s in tiny_scene]
+    run = report.scenes[0]
+    for stage in ("decode", "valid", "downsample", "inference", "nms", "cluster", "encode", "total"):
+        assert len(run.stages_ms[stage]) == 2, stage
+        assert run.stat(stage) <= run.stat(stage, 90)
+    assert run.valid_points == int(np.isfinite(
+        np.frombuffer(bytes(scene.msg.data), np.float32).reshape(-1, 4)[:, :3]).all(1).sum())
+    assert run.counts is not None and 0.0 <= run.counts.precision <= 1.0
+    assert run.full_res is not None and run.full_res["network_points"] == run.valid_points
+    assert run.peak_rss_mb > 10
+    post = report.postprocess
+    assert post["points"] == min(100_000, run.valid_points) and post["total_ms"]["median"] > 0
+    # embeddings made from the ground truth: every center found joins its own instance
+    assert post["accuracy"]["precision"] > 0.5
+
+    out = bench.write_json(report, tmp_path / "bench.json")
+    data = json.loads(out.read_text())
+    assert data["format"] == bench.REPORT_FORMAT
+    assert data["scenes"][0]["stages_ms"]["total"]["runs"] == run.stages_ms["total"]
+    assert any(g["goal"].startswith("NMS + clustering") for g in data["goals"])
+    png = bench.plot(report, tmp_path / "bench.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = report.table() + report.summary()
+    assert scene.name in text and "goals:" in text
+
+
+def _run(name, kind, parts, valid, total_ms, counts=None, full=None):
+    return bench.SceneRun(name=name, kind=kind, points=640 * 480, valid_points=valid,
+                          network_points=valid // 10, gt_instances=parts, num_parts=parts,
+                          predicted=parts or 0, stages_ms={"total": list(total_ms)},
+                          counts=counts, peak_rss_mb=100.0, full_res=full)
+
+
+def test_report_growth_linearity_and_goals():
+    fast = InstanceCounts(true_positives=18, predictions=20, ground_truths=20)
+    full = {"accuracy": {"true_positives": 19, "predictions": 20, "ground_truths": 20}}
+    report = bench.BenchReport(scenes=[
+        _run("a", "synth", 5, 100_000, [100, 110, 120]),
+        _run("b", "synth", 20, 200_000, [150, 150, 160], counts=fast, full=full),
+        _run("c", "synth", 40, 300_000, [200, 210, 230]),
+    ], machine={}, model={}, config={}, runs=3)
+    g = report.growth()
+    assert (g["from_parts"], g["to_parts"]) == (5, 40)
+    assert g["growth"] == pytest.approx(210 / 110 - 1)
+    lin = report.linearity()  # medians 110, 150, 210 at 100k, 200k, 300k: slope 50 ms / 100k
+    assert lin["ms_per_100k_valid_points"] == pytest.approx(50.0)
+    assert lin["intercept_ms"] == pytest.approx(470 / 3 - 100)  # mean 156.7 ms at 200k
+    goals = {x["goal"]: x for x in report.goals()}
+    e2e = goals["end to end, cluttered bin (20-30 parts), median"]
+    assert e2e["value"] == 150 and e2e["ok"] is True
+    acc = next(x for k, x in goals.items() if k.startswith("precision/recall vs full"))
+    assert acc["value"] == pytest.approx(5.0) and acc["ok"] is False  # recall 0.90 vs 0.95
+    growth = next(x for k, x in goals.items() if k.startswith("latency growth"))
+    assert growth["ok"] is False
+
+
+def _timings(rate, seconds, process_s, queue):
+    """Send times at ``rate``; a node taking ``process_s`` per frame either serves frames in
+    order (a queue) or always takes the newest one sent before it becomes free."""
+    sent = {i: i / rate for i in range(int(seconds * rate))}
+    arrivals, free = {}, 0.0
+    pending = sorted(sent)
+    while pending:
+        if queue:
+            s = pending.pop(0)
+        else:
+            ready = [p for p in pending if sent[p] <= max(free, sent[pending[0]])]
+            s = ready[-1]
+            pending = [p for p in pending if p > s]
+        start = max(free, sent[s])
+        free = start + process_s
+        arrivals[s] = {"segmented_points": free, "instances": free + 0.001,
+                       "instance_markers": free + 0.002}
+    return sent, arrivals
+
+
+@pytest.mark.parametrize("queue", [False, True])
+def test_dds_summary_tells_a_queue_from_dropping(queue):
+    sent, arrivals = _timings(rate=10, seconds=20, process_s=0.25, queue=queue)
+    r = summarise(10, 20.0, sent, arrivals, rss=[(0.0, 300.0), (1.0, 310.0)], peak_rss_mb=320.0,
+                  log="", exit_code=0)
+    assert r["keeps_up"] is False
+    assert r["processing_period_ms"] == pytest.approx(250, abs=1)
+    if queue:   # every frame is served, each waiting longer: the age grows ~ (1 - 10*0.025)/s
+        assert r["dropped"] == 0
+        assert r["age_trend_ms_per_s"] > 500
+        assert r["no_queue"] is False
+    else:       # about 1 frame in 2.5 answered; ages stay within about one period
+        assert 70 <= r["outputs"] <= 90 and r["dropped"] == 200 - r["outputs"]
+        assert r["latency_ms"]["max"] <= 2 * 250 + 1
+        assert abs(r["age_trend_ms_per_s"]) < 5
+        assert r["no_queue"] is True
+
+
+def test_parse_node_log():
+    log = ("[INFO] 12 frames out, 3 stale dropped, 0 invalid, 0 failed; latency median 181 ms, "
+           "last 20 instances\n[INFO] 30 frames out ...; latency median 175.5 ms, last 19\n"
+           "[INFO] totals: received 40, published 31, invalid 0, failed 0, dropped_stale 9, "
+           "skipped_old 0, dropped_at_shutdown 0\n")
+    parsed = parse_node_log(log)
+    assert parsed["received"] == 40 and parsed["published"] == 31
+    assert parsed["dropped_stale"] == 9 and parsed["node_latency_median_ms"] == 175.5
+
+
+def test_cli_parses_and_runs_without_scenes(capsys, tmp_path):
+    from fpcc_ros.cli import main
+
+    code = main(["bench", "--scenes", "none", "--model", str(TINY), "--json",
+                 str(tmp_path / "r.json")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "goals:" in out and json.loads((tmp_path / "r.json").read_text())["scenes"] == []
+    with pytest.raises(SystemExit):
+        main(["bench", "--scenes", "demo,nope"])
