@@ -724,6 +724,10 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         report.notes.append(f"the machine was busy at the start (1-minute load "
                             f"{report.machine['load_avg_1m_at_start']:.1f} on "
                             f"{report.machine['cpus']} CPUs): timings are inflated")
+    if not report.model.get("graph"):
+        report.notes.append("the model's graph is not rewritten for onnxruntime's CPU kernels: "
+                            "scripts/optimize_onnx.py MODEL (exact) cuts its inference time by "
+                            "about a third")
     if report.model.get("untrained"):
         report.notes.append("the model is untrained: its timings are representative, its "
                             "precision/recall are not")

@@ -50,6 +50,9 @@ class FpccModel:
         except ModelCardError as exc:
             raise ModelLoadError(str(exc)) from exc
         self.session = self._open_session(providers or ["CPUExecutionProvider"], threads)
+        # exact graph rewrites applied by scripts/optimize_onnx.py (fpcc_ros.graph_rewrite)
+        self.graph_notes: str = self.session.get_modelmeta().custom_metadata_map.get(
+            "fpcc_graph", "")
         self._check_signature()
         self._check_run()
 

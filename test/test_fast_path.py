@@ -1,0 +1,108 @@
+"""Fast paths against straightforward references: the ONNX graph rewrite (same outputs as the
+exported graph), and the runtime helpers the benchmark optimised."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = REPO / "test" / "data" / "tiny_fpcc.onnx"
+
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+
+# ---------------------------------------------------------------------------------------------
+# ONNX: global max-pool rewrite
+# ---------------------------------------------------------------------------------------------
+def _session(model_bytes: bytes):
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    return ort.InferenceSession(model_bytes, options, providers=["CPUExecutionProvider"])
+
+
+def _ops(model) -> list[str]:
+    return [n.op_type for n in model.graph.node]
+
+
+def test_rewrite_of_the_exported_network_keeps_its_outputs(tmp_path):
+    from fpcc_ros.graph_rewrite import optimize_file, sample_blocks
+    from fpcc_ros.model_card import card_path_for, load_card
+    from fpcc_ros.onnx_model import FpccModel
+
+    dst = tmp_path / "fast.onnx"
+    result = optimize_file(TINY, dst)
+    assert result == {"fused": 1, "generic": 0, "max_abs_diff": result["max_abs_diff"]}
+    rewritten = onnx.load(str(dst))
+    ops = _ops(rewritten)
+    assert ops.count("GlobalMaxPool") == 1
+    # the neighbour max-pools (axis 2) stay, the point-axis one is gone
+    for n in rewritten.graph.node:
+        if n.op_type == "ReduceMax":
+            axes = [a for a in n.attribute if a.name == "axes"][0].ints
+            assert list(axes) != [1]
+    card = load_card(card_path_for(TINY))
+    a, b = _session(TINY.read_bytes()), _session(dst.read_bytes())
+    for feed in sample_blocks(card.k, card.part_radius, sizes=(40, 700), batch=2, seed=5):
+        for x, y in zip(a.run(None, feed), b.run(None, feed)):
+            assert x.shape == y.shape
+            np.testing.assert_allclose(y, x, rtol=0, atol=1e-5)
+    # the runtime loads it (its load-time checks included) and reports the rewrite
+    (tmp_path / "fast.json").write_text(card_path_for(TINY).read_text())
+    assert FpccModel(dst).graph_notes == "global-max-pool"
+
+
+def _toy_model(keepdims: int, leaky_is_output: bool) -> bytes:
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(5, 7)).astype(np.float32)
+    b = rng.normal(size=(7,)).astype(np.float32)
+    nodes = [helper.make_node("MatMul", ["x", "w"], ["m"]),
+             helper.make_node("Add", ["b", "m"], ["a"]),
+             helper.make_node("LeakyRelu", ["a"], ["l"], alpha=0.2),
+             helper.make_node("ReduceMax", ["l"], ["y"], axes=[1], keepdims=keepdims)]
+    y_dims = ["b", 1, 7] if keepdims else ["b", 7]
+    outputs = [helper.make_tensor_value_info("y", TensorProto.FLOAT, y_dims)]
+    if leaky_is_output:
+        outputs.append(helper.make_tensor_value_info("l", TensorProto.FLOAT, ["b", "n", 7]))
+    graph = helper.make_graph(nodes, "toy", [helper.make_tensor_value_info(
+        "x", TensorProto.FLOAT, ["b", "n", 5])], outputs,
+        initializer=[numpy_helper.from_array(w, "w"), numpy_helper.from_array(b, "b")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+@pytest.mark.parametrize("keepdims", [1, 0])
+@pytest.mark.parametrize("leaky_is_output", [False, True])
+def test_rewrite_variants_match_reducemax(keepdims, leaky_is_output):
+    from fpcc_ros.graph_rewrite import rewrite_global_max
+
+    original = _toy_model(keepdims, leaky_is_output)
+    model, fused, generic = rewrite_global_max(onnx.load_from_string(original))
+    onnx.checker.check_model(model)
+    # a chain whose activation is used elsewhere cannot be moved: the generic form is used
+    assert (fused, generic) == ((0, 1) if leaky_is_output else (1, 0))
+    x = np.random.default_rng(1).normal(size=(2, 33, 5)).astype(np.float32)
+    got = _session(model.SerializeToString()).run(None, {"x": x})
+    # independent reference in numpy: max over points of LeakyReLU(x w + b)
+    inits = {i.name: onnx.numpy_helper.to_array(i) for i in onnx.load_from_string(original).graph.initializer}
+    pre = x.astype(np.float64) @ inits["w"] + inits["b"]
+    act = np.where(pre > 0, pre, 0.2 * pre)
+    want = act.max(axis=1, keepdims=bool(keepdims))
+    assert got[0].shape == want.shape
+    np.testing.assert_allclose(got[0], want, rtol=0, atol=1e-5)
+    if leaky_is_output:
+        np.testing.assert_allclose(got[1], act, rtol=0, atol=1e-5)
+
+
+def test_optimize_file_refuses_a_result_it_cannot_verify(tmp_path):
+    from fpcc_ros.graph_rewrite import optimize_file
+
+    dst = tmp_path / "out.onnx"
+    with pytest.raises(ValueError, match="differs from the original"):
+        optimize_file(TINY, dst, tolerance=-1.0)
+    assert not dst.exists()
