@@ -41,6 +41,7 @@ class PipelineConfig:
     block_size: int = 4096
     block_halo: float = 1.0   # context around each block, in part radii
     remove_floor: bool = True  # drop the dominant plane (floor around the tote) before the net
+    max_points: int = 400_000  # guard: coarser voxels beyond this many network points (> VGA)
 
     @classmethod
     def from_card(cls, card: ModelCard, **overrides: Any) -> "PipelineConfig":
@@ -83,9 +84,9 @@ class PipelineConfig:
         need(isinstance(self.block_size, int) and self.block_size >= 32, "block_size", ">= 32")
         need(_finite(self.block_halo) and 0 <= self.block_halo <= 5, "block_halo",
              "between 0 and 5 part radii")
-        if (self.roi_min is None) != (self.roi_max is None):
-            raise ConfigError("roi_min and roi_max must be set together (or both empty for no crop)")
-        if self.roi_min is not None and any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
+        need(isinstance(self.max_points, int) and self.max_points >= 1000, "max_points", ">= 1000")
+        if self.roi_min is not None and self.roi_max is not None and \
+                any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
             raise ConfigError(f"roi_min={list(self.roi_min)} must be below roi_max="
                               f"{list(self.roi_max)} on every axis")
 
@@ -112,6 +113,7 @@ class SegmentationResult:
     point_counts: np.ndarray    # (K,) int64
     num_valid: int
     num_network_points: int
+    voxel_size: float = 0.0     # the voxel edge used (m); 0 = full resolution
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -162,14 +164,16 @@ class Pipeline:
 
         # 1. valid points: finite xyz inside the optional ROI box
         valid = np.isfinite(xyz).all(axis=1)
-        if cfg.roi_min is not None:
-            valid &= ((xyz >= cfg.roi_min) & (xyz <= cfg.roi_max)).all(axis=1)
+        if cfg.roi_min is not None:  # either corner may be empty: a half-open box
+            valid &= (xyz >= cfg.roi_min).all(axis=1)
+        if cfg.roi_max is not None:
+            valid &= (xyz <= cfg.roi_max).all(axis=1)
         valid_idx = np.flatnonzero(valid)
         pts = xyz[valid_idx].astype(np.float64)
         clock.lap("valid")
 
         # 2. voxel downsample; `inverse` carries every valid point to its representative
-        keep, inverse = voxel_downsample(pts, cfg.effective_voxel_size)
+        keep, inverse, voxel = _bounded_downsample(pts, cfg.effective_voxel_size, cfg.max_points)
         net_xyz = pts[keep]
         clock.lap("downsample")
 
@@ -210,7 +214,8 @@ class Pipeline:
 
         return SegmentationResult(labels=labels, center_score=center_score, centroids=centroids,
                                   point_counts=counts, num_valid=len(valid_idx),
-                                  num_network_points=len(net_xyz), timings_ms=clock.laps)
+                                  num_network_points=len(net_xyz), voxel_size=voxel,
+                                  timings_ms=clock.laps)
 
 
     def _run_block(self, xyz: np.ndarray, core: np.ndarray, candidates: np.ndarray,
@@ -229,6 +234,27 @@ class Pipeline:
         emb, sc = self.model.run(feats, knn)
         clock.lap("inference")
         return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
+
+
+def _bounded_downsample(xyz: np.ndarray, voxel: float, max_points: int
+                        ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Voxel downsampling that never hands the network more than ``max_points`` points.
+
+    A camera frame at the card's voxel size is far below the bound; a dense volumetric cloud
+    (or voxel_size 0 on a huge cloud) would otherwise take minutes and gigabytes. Voxels grow
+    by the square root of the excess (clouds are surfaces) until the bound holds.
+    """
+    keep, inverse = voxel_downsample(xyz, voxel)
+    for _ in range(8):
+        if len(keep) <= max_points:
+            break
+        if voxel <= 0:  # full resolution asked for: start from a voxel that fits the extent
+            extent = np.ptp(xyz, axis=0).max() if len(xyz) else 0.0
+            voxel = max(extent / np.sqrt(max_points), 1e-6)
+        else:
+            voxel *= 1.05 * np.sqrt(len(keep) / max_points)
+        keep, inverse = voxel_downsample(xyz, voxel)
+    return keep, inverse, voxel
 
 
 def _drop_small_instances(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:

@@ -89,9 +89,9 @@ PARAMS = (
     _Param("min_points", ParameterType.PARAMETER_INTEGER,
            "Instances with fewer input points get label 0.", 0, 10_000_000),
     _Param("roi_min", ParameterType.PARAMETER_DOUBLE_ARRAY,
-           "[x, y, z] lower corner of the crop box in the cloud's frame (m). Empty = no crop."),
+           "[x, y, z] lower corner of the crop box in the cloud's frame (m). Empty = no lower bound."),
     _Param("roi_max", ParameterType.PARAMETER_DOUBLE_ARRAY,
-           "[x, y, z] upper corner of the crop box in the cloud's frame (m). Empty = no crop."),
+           "[x, y, z] upper corner of the crop box in the cloud's frame (m). Empty = no upper bound."),
     _Param("voxel_size", ParameterType.PARAMETER_DOUBLE,
            "Voxel edge (m) for downsampling before the network; labels are carried back to "
            "every input point. 0 = off, -1 = auto (the card's voxel_factor * part_radius).",

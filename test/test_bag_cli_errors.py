@@ -127,7 +127,7 @@ def test_an_existing_output_is_kept_without_force_and_replaced_with_it(good_bag,
     assert _leftovers(tmp_path) == []
 
 
-@pytest.mark.parametrize("fault", [KeyboardInterrupt, RuntimeError])
+@pytest.mark.parametrize("fault", [KeyboardInterrupt])
 def test_the_output_appears_only_when_complete(good_bag, tmp_path, capsys, monkeypatch, fault):
     """Interrupted (Ctrl-C) or failed half-way: no output under the asked name, no leftovers;
     while writing, the bag lives under a hidden temporary name beside it."""
@@ -161,7 +161,7 @@ def test_every_input_message_yields_one_output_per_topic_with_its_stamp(tmp_path
     assert rc == 0, err
     n = len(clouds)
     assert (f"{n} input messages on /cam/points: {n} segmented (one output per topic each, "
-            f"same stamps), 0 malformed and skipped") in stdout
+            f"same stamps), 0 malformed or failed and skipped") in stdout
     got = {}
     for topic, _, ts, msg in read_messages(tmp_path / "out"):
         got.setdefault(topic, []).append((ts, msg))
@@ -183,7 +183,7 @@ def test_a_malformed_message_in_a_bag_is_counted_and_reported(tmp_path, capsys):
     assert rc == 1
     assert "message at 5002000 ns skipped: PointCloud2 data has" in err and "truncated" in err
     assert ("4 input messages on /cam/points: 3 segmented (one output per topic each, same "
-            "stamps), 1 malformed and skipped") in stdout
+            "stamps), 1 malformed or failed and skipped") in stdout
     for topic in OUT_TOPICS:
         stamps = [cf.stamp_of(m if topic != "/instance_markers" else m.markers[0])
                   for _, _, _, m in read_messages(tmp_path / "out", [topic])]
@@ -217,3 +217,27 @@ def test_torch_checkpoints_load_with_weights_only(tmp_path):
     with pytest.raises(Exception, match="[Ww]eights only load failed"):
         load_checkpoint(evil)
     assert not marker.exists()
+
+
+def test_a_frame_that_fails_is_skipped_and_the_rest_still_come_out(good_bag, tmp_path, capsys,
+                                                                    monkeypatch):
+    """As in the node: an exception in one frame costs that frame, not the bag (exit code 1)."""
+    import fpcc_ros.frame as frame
+    real, calls = frame.process_cloud, []
+
+    def fail_third(msg, pipeline, types):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("injected at message 3")
+        return real(msg, pipeline, types)
+
+    monkeypatch.setattr(frame, "process_cloud", fail_third)
+    out = tmp_path / "out"
+    rc = fpcc(["segment", str(good_bag), "--out", str(out), "--model", MODEL])
+    err = capsys.readouterr().err
+    assert rc == 1 and "injected at message 3" in err
+    counts = {}
+    for topic, _, _, _ in read_messages(out):
+        counts[topic] = counts.get(topic, 0) + 1
+    inputs = counts.pop("/cam/points")
+    assert inputs == len(calls) and all(n == inputs - 1 for n in counts.values())

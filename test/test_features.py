@@ -55,3 +55,15 @@ def test_dominant_plane_removes_nothing_when_no_plane_is_large():
 def test_plane_tolerance_is_bounded():
     assert plane_tolerance(0.001) == 0.004 and plane_tolerance(10.0) == 0.012
     assert plane_tolerance(0.08) == 0.008
+
+
+def test_bounded_downsample_caps_network_points_and_keeps_the_mapping():
+    from fpcc_ros.pipeline import _bounded_downsample
+    rng = np.random.default_rng(3)
+    cube = rng.uniform(0, 0.5, (200_000, 3))          # a dense volume, not a surface
+    keep, inverse, voxel = _bounded_downsample(cube, 0.004, max_points=5000)
+    assert len(keep) <= 5000 and voxel > 0.004
+    # every input point maps to a representative in its own (coarser) voxel
+    assert np.abs(cube[keep][inverse] - cube).max() <= np.sqrt(3) * voxel
+    small_keep, _, small_voxel = _bounded_downsample(cube[:1000], 0.004, max_points=5000)
+    assert small_voxel == 0.004 and len(small_keep) <= 1000

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         pipeline = build_pipeline(args)
-        if args.input.is_dir():
+        if args.input.is_dir() or args.input.suffix == ".mcap":
             return _segment_bag(args, pipeline)
         return _segment_file(args, pipeline)
     except (ModelLoadError, ConfigError, BagError, CloudFormatError, ValueError, OSError) as exc:
@@ -52,7 +52,7 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
     from fpcc_ros.frame import process_cloud
 
     topic = pick_cloud_topic(args.input, args.topic)
-    out = args.out or args.input.with_name(args.input.name + "_segmented")
+    out = args.out or args.input.with_name(args.input.stem + "_segmented")
     total = list_topics(args.input)  # validates the bag before we create anything
     rows, skipped, last = [], 0, None
     with BagWriter(out, force=args.force) as writer:
@@ -69,6 +69,11 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
                 skipped += 1
                 print(f"  message at {ts} ns skipped: {exc}", file=sys.stderr)
                 continue
+            except Exception as exc:  # noqa: BLE001 - as the node: one bad frame, not the bag
+                skipped += 1
+                print(f"  message at {ts} ns failed ({type(exc).__name__}: {exc}); skipped",
+                      file=sys.stderr)
+                continue
             writer.write("/segmented_points", ts, frame.cloud)
             writer.write("/instances", ts, frame.instances)
             writer.write("/instance_markers", ts, frame.markers)
@@ -76,7 +81,7 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
             last = (msg, frame)
     _print_table(rows)
     print(f"{len(rows) + skipped} input messages on {topic}: {len(rows)} segmented "
-          f"(one output per topic each, same stamps), {skipped} malformed and skipped")
+          f"(one output per topic each, same stamps), {skipped} malformed or failed and skipped")
     print(f"wrote {out}")
     if args.png and last:
         from msg_tools.point_cloud2 import read_xyz

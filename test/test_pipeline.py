@@ -1,0 +1,65 @@
+"""Pipeline contract with the tiny (untrained) test model: what must hold whatever it predicts."""
+import numpy as np
+import pytest
+
+from fpcc_ros.onnx_model import FpccModel
+from fpcc_ros.pipeline import ConfigError, Pipeline, PipelineConfig
+
+from conftest import TEST_DATA
+
+
+@pytest.fixture(scope="module")
+def model():
+    return FpccModel(TEST_DATA / "tiny_fpcc.onnx", threads=1)
+
+
+def _scene(seed=0, n=20_000):
+    rng = np.random.default_rng(seed)
+    floor = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), np.full(n, 1.0) + rng.normal(0, 5e-4, n)]
+    blobs = np.concatenate([c + rng.normal(0, 0.02, (2000, 3)) for c in
+                            ([0.1, 0.1, 0.95], [-0.1, 0.0, 0.95], [0.0, -0.15, 0.95])])
+    xyz = np.vstack([floor, blobs]).astype(np.float32)
+    xyz[::50] = np.nan
+    return xyz
+
+
+def test_labels_are_index_aligned_and_only_on_finite_points(model):
+    xyz = _scene()
+    result = Pipeline(model, PipelineConfig.from_card(model.card, part_radius=0.05,
+                                                      min_points=1)).segment(xyz)
+    assert result.labels.shape == (len(xyz),) and result.labels.dtype == np.uint32
+    assert not result.labels[~np.isfinite(xyz).all(axis=1)].any()
+    distinct = np.unique(result.labels[result.labels > 0])
+    assert distinct.tolist() == list(range(1, result.num_instances + 1))
+    for i, count in enumerate(result.point_counts):
+        assert (result.labels == i + 1).sum() == count
+        np.testing.assert_allclose(result.centroids[i],
+                                   xyz[result.labels == i + 1].astype(np.float64).mean(0), atol=1e-6)
+
+
+def test_half_open_roi_crops_from_one_side(model):
+    xyz = _scene(1)
+    cfg = PipelineConfig.from_card(model.card, part_radius=0.05, min_points=1,
+                                   roi_min=[0.0, -1.0, 0.0])
+    result = Pipeline(model, cfg).segment(xyz)
+    assert not result.labels[xyz[:, 0] < 0].any()
+    assert result.num_valid == int((np.isfinite(xyz).all(1) & (xyz[:, 0] >= 0)).sum())
+
+
+def test_roi_corners_must_be_ordered():
+    with pytest.raises(ConfigError, match="must be below roi_max"):
+        PipelineConfig(part_radius=0.05).replace(roi_min=[1, 0, 0], roi_max=[0, 1, 1])
+
+
+@pytest.mark.parametrize("key, value", [("part_radius", -0.1), ("score_threshold", 1.5),
+                                        ("voxel_size", -0.5), ("min_points", -1)])
+def test_out_of_range_settings_are_refused_and_named(key, value):
+    with pytest.raises(ConfigError, match=key):
+        PipelineConfig(part_radius=0.05).replace(**{key: value})
+
+
+def test_empty_and_all_nan_clouds_give_no_instances(model):
+    pipe = Pipeline(model, PipelineConfig.from_card(model.card, part_radius=0.05))
+    for xyz in (np.zeros((0, 3), np.float32), np.full((100, 3), np.nan, np.float32)):
+        result = pipe.segment(xyz)
+        assert result.num_instances == 0 and not result.labels.any()
