@@ -6,7 +6,8 @@ from fpcc_ros.cli import main as fpcc
 
 def _scene(path, h=24, w=32):
     rng = np.random.default_rng(0)
-    pts = np.dstack(np.meshgrid(np.linspace(-1, 1, w), np.linspace(-1, 1, h)) + [np.ones((h, w))])
+    gx, gy = np.meshgrid(np.linspace(-1, 1, w), np.linspace(-1, 1, h))
+    pts = np.dstack([gx, gy, np.ones((h, w))])
     inst = (rng.random((h, w)) * 4).astype(np.int32)
     np.savez(path, points=pts.astype(np.float32), instance=inst,
              center_score=rng.random((h, w)).astype(np.float32), part_radius=np.float32(0.1))
