@@ -106,3 +106,72 @@ def test_optimize_file_refuses_a_result_it_cannot_verify(tmp_path):
     with pytest.raises(ValueError, match="differs from the original"):
         optimize_file(TINY, dst, tolerance=-1.0)
     assert not dst.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# NMS and nearest-center assignment
+# ---------------------------------------------------------------------------------------------
+def _dense_gated_assign(xyz, emb, cxyz, cemb, d_max, gate):
+    """The gated rule written plainly: per point, among the centers within d_max in 3D, the
+    nearest in feature space; 0 if none or farther than the gate."""
+    labels = np.zeros(len(xyz), np.int32)
+    for i in range(len(xyz)):
+        space = np.linalg.norm(cxyz - xyz[i], axis=1)
+        feat = np.linalg.norm(cemb - emb[i], axis=1)
+        feat[space > d_max] = np.inf
+        j = int(np.argmin(feat))
+        if np.isfinite(feat[j]) and feat[j] <= gate:
+            labels[i] = j + 1
+    return labels
+
+
+def _clustered_scene(seed, n_centers=9, n_points=700, dim=16):
+    rng = np.random.default_rng(seed)
+    cxyz = rng.uniform(0, 3, (n_centers, 3))
+    cemb = rng.normal(0, 2, (n_centers, dim))
+    owner = rng.integers(0, n_centers, n_points)
+    xyz = cxyz[owner] + rng.normal(0, 0.35, (n_points, 3))
+    emb = cemb[owner] + rng.normal(0, 0.6, (n_points, dim))
+    return xyz, emb.astype(np.float32), cxyz, cemb.astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("chunk", [7, 64, 4096])
+def test_assignment_matches_the_plain_gated_rule(seed, chunk, monkeypatch):
+    import fpcc_ros.clustering as clustering
+
+    monkeypatch.setattr(clustering, "ROW_CHUNK", chunk)
+    xyz, emb, cxyz, cemb = _clustered_scene(seed)
+    for gate in (np.inf, 2.5):
+        want = _dense_gated_assign(xyz, emb, cxyz, cemb, 0.8, gate)
+        got = clustering.assign_to_center_points(xyz, emb, cxyz, cemb, 0.8, gate)
+        assert (want > 0).sum() > 100 and (want == 0).sum() > 0  # both outcomes occur
+        np.testing.assert_array_equal(got, want)
+
+
+def test_assignment_agrees_with_the_paper_rule_where_unambiguous(monkeypatch):
+    import fpcc_ros.clustering as clustering
+
+    monkeypatch.setattr(clustering, "ROW_CHUNK", 50)
+    xyz, emb, cxyz, cemb = _clustered_scene(11, n_points=400)
+    allxyz, allemb = np.vstack([cxyz, xyz]), np.vstack([cemb, emb])
+    centers = np.arange(len(cxyz))
+    ref = clustering.assign_reference(allxyz, allemb, centers, 0.8)
+    fast = clustering.assign_to_centers(allxyz, allemb, centers, 0.8)
+    unambiguous = ref > 0   # the feature-nearest center is within d_max
+    assert unambiguous.sum() > 250
+    np.testing.assert_array_equal(fast[unambiguous], ref[unambiguous])
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("direct", [0, 2, 64])
+def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, monkeypatch):
+    import fpcc_ros.nms as nms
+
+    monkeypatch.setattr(nms, "DIRECT_CENTERS", direct)
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(0, 1, (500, 3))
+    scores = np.round(rng.uniform(0, 1, 500), 2)   # many ties: broken by index
+    want = nms.nms_reference(xyz, scores, 0.5, 0.12)
+    assert len(want) > 10
+    np.testing.assert_array_equal(nms.nms_centers(xyz, scores, 0.5, 0.12), want)
