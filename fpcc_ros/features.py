@@ -21,15 +21,36 @@ def voxel_downsample(xyz: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np
     Returns ``(keep, inverse)``: ``xyz[keep]`` are the representatives (real points, so the
     network sees measured geometry) and ``inverse[i]`` is the row of ``keep`` whose voxel holds
     input point ``i`` -- the index used to carry labels back to every input point.
+
+    The representative of a voxel is its first input point, voxels in ascending key order (what
+    ``np.unique(keys, return_index=True, return_inverse=True)`` gives). When the voxel grid of
+    the cloud's bounding box is small (a camera view: ~0.5M cells for 300k points) the first
+    points and ranks come from a table over the grid instead of sorting the keys.
     """
     n = len(xyz)
     if voxel_size <= 0 or n == 0:
         return np.arange(n), np.arange(n)
-    cells = np.floor((xyz - xyz.min(axis=0)) / voxel_size).astype(np.int64)
-    dims = cells.max(axis=0) + 1
-    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return keep, inverse.reshape(-1)
+    cols = np.asarray(xyz).T  # per-axis passes over contiguous rows: the same arithmetic, faster
+    if not cols.flags.c_contiguous:
+        cols = cols.copy()
+    cells = np.empty((3, n), dtype=np.int64)
+    for d in range(3):
+        cells[d] = np.floor((cols[d] - cols[d].min()) / voxel_size)
+    dims = cells.max(axis=1) + 1
+    keys = (cells[0] * dims[1] + cells[1]) * dims[2] + cells[2]
+    total = int(dims[0]) * int(dims[1]) * int(dims[2])
+    if total > DENSE_VOXEL_CELLS_PER_POINT * n + 4096:  # sparse outliers: sort instead
+        _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        return keep, inverse.reshape(-1)
+    first = np.full(total, n, dtype=np.int64)
+    np.minimum.at(first, keys, np.arange(n, dtype=np.int64))
+    occupied = first < n
+    rank = np.cumsum(occupied, dtype=np.int64) - 1
+    return first[occupied], rank[keys]
+
+
+# voxel_downsample's table is used while the grid has at most this many cells per input point
+DENSE_VOXEL_CELLS_PER_POINT = 16
 
 
 def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
@@ -63,14 +84,16 @@ def block_features(xyz: np.ndarray, part_radius: float) -> np.ndarray:
     return np.concatenate([shifted / part_radius, shifted / extent], axis=1).astype(np.float32)
 
 
-def knn_graph(xyz: np.ndarray, k: int) -> np.ndarray:
+def knn_graph(xyz: np.ndarray, k: int, workers: int = 1) -> np.ndarray:
     """(n, k) int64 indices of each point's k nearest neighbours in 3D, itself first.
 
     Blocks smaller than k repeat their farthest neighbour so the graph keeps a fixed width.
+    ``workers`` > 1 (or -1: all CPUs) splits the queries over threads; every query is answered
+    alone, so the result does not depend on it.
     """
     n = len(xyz)
     kk = min(k, n)
-    _, idx = cKDTree(xyz).query(xyz, k=kk)
+    _, idx = cKDTree(xyz).query(xyz, k=kk, workers=workers)
     idx = np.asarray(idx, dtype=np.int64).reshape(n, kk)
     if kk < k:
         idx = np.concatenate([idx, np.repeat(idx[:, -1:], k - kk, axis=1)], axis=1)

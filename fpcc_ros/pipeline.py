@@ -156,20 +156,18 @@ class Pipeline:
     def __init__(self, model: FpccModel, config: PipelineConfig | None = None):
         self.model = model
         self.config = config or PipelineConfig.from_card(model.card)
+        # kNN queries on the threads onnxruntime uses (they are idle while features are built)
+        threads = int(getattr(model, "threads", 0) or 0)
+        self._knn_workers = threads if threads > 0 else -1
 
     def segment(self, xyz: np.ndarray) -> SegmentationResult:
         cfg = self.config
         clock = _StageClock()
         n = len(xyz)
 
-        # 1. valid points: finite xyz inside the optional ROI box
-        valid = np.isfinite(xyz).all(axis=1)
-        if cfg.roi_min is not None:  # either corner may be empty: a half-open box
-            valid &= (xyz >= cfg.roi_min).all(axis=1)
-        if cfg.roi_max is not None:
-            valid &= (xyz <= cfg.roi_max).all(axis=1)
-        valid_idx = np.flatnonzero(valid)
-        pts = xyz[valid_idx].astype(np.float64)
+        # 1. valid points: finite xyz inside the optional ROI box (either corner may be empty)
+        valid_idx = _valid_points(xyz, cfg.roi_min, cfg.roi_max)
+        pts = np.take(xyz, valid_idx, axis=0).astype(np.float64)
         clock.lap("valid")
 
         # 2. voxel downsample; `inverse` carries every valid point to its representative
@@ -229,11 +227,28 @@ class Pipeline:
         inside[core] = False
         ext = np.concatenate([core, np.flatnonzero(inside)])
         feats = block_features(xyz[ext], cfg.part_radius)[None]
-        knn = knn_graph(xyz[ext], self.model.card.k)[None]
+        knn = knn_graph(xyz[ext], self.model.card.k, workers=self._knn_workers)[None]
         clock.lap("features")
         emb, sc = self.model.run(feats, knn)
         clock.lap("inference")
         return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
+
+
+def _valid_points(xyz: np.ndarray, roi_min: tuple | None, roi_max: tuple | None) -> np.ndarray:
+    """Indices of the rows with finite x, y, z inside the (possibly half-open) box.
+
+    Column by column: ``np.isfinite(xyz).all(axis=1)`` reduces over an axis of length 3 and is
+    ~20x slower on a 640x480 cloud (2.8 ms vs 0.13 ms).
+    """
+    valid = np.ones(len(xyz), dtype=bool)
+    for d in range(3):
+        col = xyz[:, d]
+        valid &= np.isfinite(col)
+        if roi_min is not None:
+            valid &= col >= roi_min[d]
+        if roi_max is not None:
+            valid &= col <= roi_max[d]
+    return np.flatnonzero(valid)
 
 
 def _bounded_downsample(xyz: np.ndarray, voxel: float, max_points: int

@@ -175,3 +175,94 @@ def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, mo
     want = nms.nms_reference(xyz, scores, 0.5, 0.12)
     assert len(want) > 10
     np.testing.assert_array_equal(nms.nms_centers(xyz, scores, 0.5, 0.12), want)
+
+
+# ---------------------------------------------------------------------------------------------
+# features.py: outputs bit-identical to the implementation training used before the speed-ups
+# ---------------------------------------------------------------------------------------------
+def _voxel_downsample_before(xyz, voxel_size):
+    """fpcc_ros.features.voxel_downsample as of commit dc90e62 (np.unique over voxel keys)."""
+    n = len(xyz)
+    if voxel_size <= 0 or n == 0:
+        return np.arange(n), np.arange(n)
+    cells = np.floor((xyz - xyz.min(axis=0)) / voxel_size).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return keep, inverse.reshape(-1)
+
+
+def _knn_graph_before(xyz, k):
+    """fpcc_ros.features.knn_graph as of commit dc90e62."""
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    kk = min(k, n)
+    _, idx = cKDTree(xyz).query(xyz, k=kk)
+    idx = np.asarray(idx, dtype=np.int64).reshape(n, kk)
+    if kk < k:
+        idx = np.concatenate([idx, np.repeat(idx[:, -1:], k - kk, axis=1)], axis=1)
+    return idx
+
+
+def _clouds():
+    rng = np.random.default_rng(3)
+    camera = rng.normal(0, 0.3, (20000, 3)) + [0, 0, 1.2]
+    quantized = np.round(rng.uniform(-0.5, 0.5, (5000, 3)), 2)          # points on voxel faces
+    duplicates = np.repeat(rng.uniform(0, 1, (300, 3)), 4, axis=0)[rng.permutation(1200)]
+    flat = np.c_[rng.uniform(0, 1, (3000, 2)), np.zeros(3000)]
+    outlier = np.vstack([rng.uniform(0, 0.2, (2000, 3)), [[40.0, -35.0, 60.0]]])  # sparse grid
+    return {"camera": camera, "quantized": quantized, "duplicates": duplicates, "flat": flat,
+            "outlier": outlier, "one": np.array([[0.1, 0.2, 0.3]]), "empty": np.zeros((0, 3))}
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+@pytest.mark.parametrize("voxel", [0.0, 0.01, 0.05, 0.25])
+def test_voxel_downsample_is_bit_identical_to_before(name, voxel):
+    from fpcc_ros.features import voxel_downsample
+
+    xyz = _clouds()[name]
+    want, got = _voxel_downsample_before(xyz, voxel), voxel_downsample(xyz, voxel)
+    for w, g in zip(want, got):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        np.testing.assert_array_equal(g, w)
+
+
+def test_voxel_downsample_sorts_when_the_grid_is_sparse(monkeypatch):
+    import fpcc_ros.features as features
+
+    xyz = _clouds()["camera"]
+    want = _voxel_downsample_before(xyz, 0.02)
+    monkeypatch.setattr(features, "DENSE_VOXEL_CELLS_PER_POINT", 0)   # force the np.unique path
+    for w, g in zip(want, features.voxel_downsample(xyz, 0.02)):
+        np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize("name", ["camera", "quantized", "duplicates", "flat"])
+@pytest.mark.parametrize("workers", [1, 2, -1])
+def test_knn_graph_is_bit_identical_to_before(name, workers):
+    from fpcc_ros.features import knn_graph
+
+    xyz = _clouds()[name][:3000]
+    np.testing.assert_array_equal(knn_graph(xyz, 16, workers=workers), _knn_graph_before(xyz, 16))
+    small = xyz[:5]   # fewer points than k: the farthest neighbour is repeated
+    np.testing.assert_array_equal(knn_graph(small, 16, workers=workers), _knn_graph_before(small, 16))
+
+
+@pytest.mark.parametrize("roi", [(None, None), ((-0.2, -1.0, 0.5), None), (None, (0.3, 0.3, 2.0)),
+                                 ((-0.2, -0.2, 0.8), (0.3, 0.3, 1.6))])
+def test_valid_points_match_the_row_mask(roi):
+    from fpcc_ros.pipeline import _valid_points
+
+    rng = np.random.default_rng(8)
+    xyz = (rng.normal(0, 0.3, (5000, 3)) + [0, 0, 1.2]).astype(np.float32)
+    xyz[rng.integers(0, 5000, 400), rng.integers(0, 3, 400)] = np.nan
+    xyz[rng.integers(0, 5000, 50), rng.integers(0, 3, 50)] = np.inf
+    xyz[rng.integers(0, 5000, 50), rng.integers(0, 3, 50)] = -np.inf
+    lo, hi = roi
+    mask = np.isfinite(xyz).all(axis=1)
+    if lo is not None:
+        mask &= (xyz >= lo).all(axis=1)
+    if hi is not None:
+        mask &= (xyz <= hi).all(axis=1)
+    np.testing.assert_array_equal(_valid_points(xyz, lo, hi), np.flatnonzero(mask))
