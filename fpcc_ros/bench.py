@@ -253,6 +253,7 @@ class SceneRun:
     peak_rss_mb: float
     gt_note: str = ""
     full_res: dict[str, Any] | None = None
+    inferred_points: int = 0        # points run through the network, halos included
 
     def stat(self, stage: str, q: float = 50.0) -> float:
         values = self.stages_ms.get(stage)
@@ -262,6 +263,7 @@ class SceneRun:
         return {
             "scene": self.name, "kind": self.kind, "points": self.points,
             "valid_points": self.valid_points, "network_points": self.network_points,
+            "inferred_points": self.inferred_points,
             "gt_instances_visible": self.gt_instances, "num_parts": self.num_parts,
             "predicted_instances": self.predicted,
             "stages_ms": {s: {"median": self.stat(s), "p90": self.stat(s, 90.0), "runs": v}
@@ -336,7 +338,8 @@ def measure_scene(scene: BenchScene, pipeline: Any, runs: int, warmup: int = 1,
                    gt_instances=visible_gt_instances(scene), num_parts=scene.num_parts,
                    predicted=result.num_instances, stages_ms=stages,
                    counts=scene_accuracy(scene, result.labels), peak_rss_mb=peak_rss_mb(),
-                   gt_note=scene.gt_note)
+                   gt_note=scene.gt_note,
+                   inferred_points=int(getattr(result, "num_inferred_points", 0)))
     if full_res_pipeline is not None and scene.gt is not None:
         full = _at_radius(full_res_pipeline, scene.part_radius)
         t0 = time.perf_counter()
@@ -344,6 +347,7 @@ def measure_scene(scene: BenchScene, pipeline: Any, runs: int, warmup: int = 1,
         counts = scene_accuracy(scene, full_out.result.labels)
         run.full_res = {"total_ms": (time.perf_counter() - t0) * 1e3,
                         "network_points": full_out.result.num_network_points,
+                        "inferred_points": int(getattr(full_out.result, "num_inferred_points", 0)),
                         "predicted_instances": full_out.result.num_instances,
                         "accuracy": counts.summary() if counts is not None else None}
     return run
@@ -427,6 +431,7 @@ class BenchReport:
     postprocess: dict[str, Any] | None = None
     dds: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
+    variants: list[dict[str, Any]] = field(default_factory=list)  # see run_variants
 
     # -- derived figures ---------------------------------------------------------------------
     def synth(self) -> list[SceneRun]:
@@ -524,22 +529,25 @@ class BenchReport:
                 "peak_rss_mb": max((s.peak_rss_mb for s in self.scenes), default=None),
             },
             "postprocess": self.postprocess, "dds": self.dds, "goals": self.goals(),
+            "variants": [{**v, "scenes": [r.to_json() for r in v["scenes"]]} for v in self.variants],
             "notes": self.notes,
         }
 
     def table(self) -> str:
         stages = [s for s in STAGES if any(s in r.stages_ms for r in self.scenes)]
         name_w = max([len(s.name) for s in self.scenes] + [5])
-        head = (f"{'scene':<{name_w}} {'valid':>7} {'net':>6} {'GT':>3} {'pred':>4} "
+        head = (f"{'scene':<{name_w}} {'valid':>7} {'net':>6} {'inf':>6} {'GT':>3} {'pred':>4} "
                 + " ".join(f"{_short(s):>9}" for s in stages) + f" {'RSS MB':>7} {'P':>6} {'R':>6}")
-        lines = [f"median / p90 ms over {self.runs} warm runs per scene "
-                 f"(net = points through the network; GT = visible ground-truth instances)",
+        lines = [f"median / p90 ms over {self.runs} warm runs per scene (net = points after "
+                 f"voxel downsampling, inf = points run through the network, halos included; "
+                 f"GT = visible ground-truth instances)",
                  head, "-" * len(head)]
         for r in self.scenes:
             cells = " ".join(f"{_pair(r.stat(s), r.stat(s, 90)):>9}" for s in stages)
             p = f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f}" if r.counts else f"{'n/a':>6} {'n/a':>6}"
             gt = "-" if r.gt_instances is None else str(r.gt_instances)
-            lines.append(f"{r.name:<{name_w}} {r.valid_points:>7} {r.network_points:>6} {gt:>3} "
+            lines.append(f"{r.name:<{name_w}} {r.valid_points:>7} {r.network_points:>6} "
+                         f"{r.inferred_points:>6} {gt:>3} "
                          f"{r.predicted:>4} {cells} {r.peak_rss_mb:>7.0f} {p}")
         full_rows = [r for r in self.scenes if r.full_res]
         if full_rows:
@@ -551,6 +559,36 @@ class BenchReport:
                              f"{a.get('precision', float('nan')):.3f} R {a.get('recall', float('nan')):.3f}"
                              + (f"  (fast path P {r.counts.precision:.3f} R {r.counts.recall:.3f})"
                                 if r.counts else ""))
+        return "\n".join(lines)
+
+    def variants_table(self) -> str:
+        """The default settings and each variant side by side: latency, network work, accuracy
+        (counts summed over the scenes with ground truth) and the change against full resolution."""
+        rows = [{"name": "default", "scenes": self.scenes}] + self.variants
+        full = self.full_res_totals(self.scenes)
+        w = max([len(row["name"]) for row in rows] + [25])
+        head = (f"{'settings':<{w}} {'clutter ms':>10} {'inferred':>9} {'P':>6} {'R':>6} "
+                f"{'clutter P':>9} {'clutter R':>9}" + (f" {'dP full':>8} {'dR full':>8}" if full else ""))
+        lines = ["settings compared on the same scenes (inferred = mean points through the "
+                 "network per scene; P/R visible protocol, counts summed)", head, "-" * len(head)]
+        lo, hi = CLUTTER_PARTS
+        for row in rows:
+            scenes = row["scenes"]
+            clutter = [r for r in scenes if r.kind == "synth" and r.num_parts is not None
+                       and lo <= r.num_parts <= hi]
+            ms = float(np.median([r.stat("total") for r in clutter])) if clutter else float("nan")
+            inferred = float(np.mean([r.inferred_points for r in scenes])) if scenes else float("nan")
+            every, dense = self.totals(scenes), self.totals(clutter)
+            cells = (f"{every.precision:>6.3f} {every.recall:>6.3f}" if every else f"{'n/a':>6} {'n/a':>6}")
+            cells += (f" {dense.precision:>9.3f} {dense.recall:>9.3f}" if dense else f" {'n/a':>9} {'n/a':>9}")
+            if full:
+                cells += (f" {100 * (every.precision - full.precision):>+8.1f} "
+                          f"{100 * (every.recall - full.recall):>+8.1f}" if every else "")
+            lines.append(f"{row['name']:<{w}} {ms:>10.0f} {inferred:>9.0f} {cells}")
+        if full:
+            lines.append(f"{'full resolution (one run)':<{w}} {'':>10} "
+                         f"{np.mean([r.full_res['inferred_points'] for r in self.scenes if r.full_res]):>9.0f} "
+                         f"{full.precision:>6.3f} {full.recall:>6.3f}   (dP/dR in points)")
         return "\n".join(lines)
 
     def summary(self) -> str:
@@ -732,6 +770,35 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         report.notes.append("the model is untrained: its timings are representative, its "
                             "precision/recall are not")
     return report
+
+
+def parse_variant(text: str) -> dict[str, Any]:
+    """``"block_halo=0.5,block_size=4096"`` -> pipeline config overrides (numbers parsed)."""
+    overrides: dict[str, Any] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"variant {text!r}: {item!r} is not KEY=VALUE (e.g. block_halo=0.5)")
+        try:
+            number = float(value)
+        except ValueError as exc:
+            raise ValueError(f"variant {text!r}: {key}={value!r} is not a number") from exc
+        overrides[key.strip()] = int(number) if number.is_integer() and "." not in value else number
+    return overrides
+
+
+def run_variants(report: BenchReport, pipeline: Any, scenes: Sequence[BenchScene],
+                 variants: Sequence[str], runs: int,
+                 progress: Callable[[Iterable], Iterable] | None = None) -> None:
+    """Each variant's settings on the same scenes, appended to ``report.variants``."""
+    for text in variants:
+        import copy
+        variant = copy.copy(pipeline)
+        variant.config = pipeline.config.replace(**parse_variant(text))
+        rows = [measure_scene(scene, variant, runs)
+                for scene in (progress or (lambda it: it))(list(scenes))]
+        report.variants.append({"name": text, "overrides": parse_variant(text),
+                                "config": config_info(variant.config), "scenes": rows})
 
 
 def write_json(report: BenchReport, path: Path) -> Path:

@@ -114,6 +114,7 @@ class SegmentationResult:
     num_valid: int
     num_network_points: int
     voxel_size: float = 0.0     # the voxel edge used (m); 0 = full resolution
+    num_inferred_points: int = 0  # points run through the network, halos included
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -213,6 +214,7 @@ class Pipeline:
         return SegmentationResult(labels=labels, center_score=center_score, centroids=centroids,
                                   point_counts=counts, num_valid=len(valid_idx),
                                   num_network_points=len(net_xyz), voxel_size=voxel,
+                                  num_inferred_points=sum(len(run.ext) for run in runs),
                                   timings_ms=clock.laps)
 
 

@@ -170,3 +170,18 @@ def test_cli_parses_and_runs_without_scenes(capsys, tmp_path):
     assert "goals:" in out and json.loads((tmp_path / "r.json").read_text())["scenes"] == []
     with pytest.raises(SystemExit):
         main(["bench", "--scenes", "demo,nope"])
+
+
+def test_variants_are_parsed_run_and_tabled(tiny_scene, tiny_pipeline):
+    assert bench.parse_variant("block_halo=0.5,block_size=4096") == {"block_halo": 0.5,
+                                                                      "block_size": 4096}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        bench.parse_variant("block_halo")
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+    bench.run_variants(report, tiny_pipeline, tiny_scene[:1], ["block_halo=0"], runs=1)
+    (variant,) = report.variants
+    assert variant["config"]["block_halo"] == 0 and len(variant["scenes"]) == 1
+    # no halo: exactly the floor-free points go through the network, fewer than with one
+    assert variant["scenes"][0].inferred_points <= report.scenes[0].inferred_points
+    assert "block_halo=0" in report.variants_table()
+    assert json.dumps(report.to_json(), default=bench._json_default)

@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="context around each block in part radii (default: pipeline's)")
     parser.add_argument("--block-size", type=int, default=None,
                         help="points per block (default: the model card's)")
+    parser.add_argument("--variants", nargs="+", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                        help="also run the scenes with these pipeline settings and compare "
+                        "latency and accuracy, e.g. block_halo=0.5 block_size=4096")
     dds = parser.add_argument_group("live node over DDS (--dds)")
     dds.add_argument("--dds", action="store_true",
                      help="also start the node and send it the demo frames at fixed rates")
@@ -95,10 +98,18 @@ def run(args: argparse.Namespace) -> int:
         for scene in scenes:
             scene.part_radius = args.part_radius
 
+    try:
+        for text in args.variants:
+            pipeline.config.replace(**bench.parse_variant(text))
+    except (ValueError, TypeError) as exc:
+        return fail(f"--variants: {exc}")
     synth = [s for s in scenes if s.kind == "synth" and s.center_score is not None]
     post_scene = max(synth, key=lambda s: s.num_parts or 0) if synth else None
     report = bench.run_bench(pipeline, scenes, runs=args.runs, full_res=args.full_res,
                              postprocess_scene=post_scene, progress=bar("bench"))
+    if args.variants:
+        bench.run_variants(report, pipeline, scenes, args.variants, args.runs,
+                           progress=bar("variants"))
     if args.dds:
         from fpcc_ros.bench_dds import run_dds
         report.dds = run_dds(model=pipeline.model.path, rates=args.dds_rates,
@@ -108,6 +119,9 @@ def run(args: argparse.Namespace) -> int:
 
     if report.scenes:
         print(report.table())
+        print()
+    if report.variants or any(r.full_res for r in report.scenes):
+        print(report.variants_table())
         print()
     if report.dds:
         from fpcc_ros.bench_dds import dds_table
