@@ -35,18 +35,22 @@ def voxel_downsample(xyz: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np
         cols = cols.copy()
     cells = np.empty((3, n), dtype=np.int64)
     for d in range(3):
-        cells[d] = np.floor((cols[d] - cols[d].min()) / voxel_size)
+        step = cols[d] - cols[d].min()
+        step /= voxel_size
+        cells[d] = np.floor(step, out=step)
     dims = cells.max(axis=1) + 1
     keys = (cells[0] * dims[1] + cells[1]) * dims[2] + cells[2]
     total = int(dims[0]) * int(dims[1]) * int(dims[2])
     if total > DENSE_VOXEL_CELLS_PER_POINT * n + 4096:  # sparse outliers: sort instead
         _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
         return keep, inverse.reshape(-1)
-    first = np.full(total, n, dtype=np.int64)
-    np.minimum.at(first, keys, np.arange(n, dtype=np.int64))
-    occupied = first < n
-    rank = np.cumsum(occupied, dtype=np.int64) - 1
-    return first[occupied], rank[keys]
+    small = np.int32 if n < 2**31 - 1 else np.int64  # halves the table (fresh pages cost)
+    first = np.full(total, n, dtype=small)
+    np.minimum.at(first, keys, np.arange(n, dtype=small))
+    occupied = np.flatnonzero(first < n)             # the unique keys, ascending
+    rank = np.empty(total, dtype=small)              # read only where occupied
+    rank[occupied] = np.arange(len(occupied), dtype=small)
+    return first[occupied].astype(np.int64), rank[keys].astype(np.int64)
 
 
 # voxel_downsample's table is used while the grid has at most this many cells per input point
