@@ -391,6 +391,14 @@ def create_cloud(
     )
 
 
+def _packed_rgb_fast(labels: np.ndarray) -> np.ndarray:
+    """:func:`packed_rgb` through a table over 0..max label (labels are small instance ids)."""
+    top = int(labels.max()) if labels.size else 0
+    if top >= 1 << 16:
+        return packed_rgb(labels)
+    return packed_rgb(np.arange(top + 1))[labels]
+
+
 def create_segmented_cloud(
     header: Any,
     xyz: np.ndarray,
@@ -417,22 +425,30 @@ def create_segmented_cloud(
         raise ValueError(f"labels has {labels.size} entries; expected height*width = {n}")
     if n and np.issubdtype(labels.dtype, np.signedinteger) and labels.min() < 0:
         raise ValueError(f"labels must be >= 0 (0 = no instance), got minimum {labels.min()}")
-    cloud = np.empty(n, dtype=_SEGMENTED_BUILD_DTYPE)
-    flat = xyz.reshape(n, 3)
-    cloud["x"] = flat[:, 0]
-    cloud["y"] = flat[:, 1]
-    cloud["z"] = flat[:, 2]
-    lab = labels.reshape(n)
-    cloud["rgb"] = packed_rgb(lab)
-    cloud["label"] = lab
-    if center_score is None:
-        cloud["center_score"] = 0.0
-    else:
+    score = None
+    if center_score is not None:
         score = np.asarray(center_score)
         if score.size != n:
             raise ValueError(f"center_score has {score.size} entries; expected height*width = {n}")
-        cloud["center_score"] = score.reshape(n)
-    return types.point_cloud2(
+    lab = labels.reshape(n)
+    if np.little_endian:
+        # Six 4-byte words per point written column by column into one (n, 6) buffer: the
+        # structured-dtype writes of the same bytes were 3x slower on a 640x480 frame.
+        words = np.empty((n, 6), dtype=np.float32)
+        bits = words.view(np.uint32)
+        words[:, 0:3] = xyz.reshape(n, 3)
+        bits[:, 3] = _packed_rgb_fast(lab)
+        bits[:, 4] = lab
+        words[:, 5] = 0.0 if score is None else score.reshape(n)
+        cloud = words.reshape(-1)
+    else:  # pragma: no cover - big-endian hosts: explicit little-endian fields
+        cloud = np.empty(n, dtype=_SEGMENTED_BUILD_DTYPE)
+        flat = xyz.reshape(n, 3)
+        cloud["x"], cloud["y"], cloud["z"] = flat[:, 0], flat[:, 1], flat[:, 2]
+        cloud["rgb"] = packed_rgb(lab)
+        cloud["label"] = lab
+        cloud["center_score"] = 0.0 if score is None else score.reshape(n)
+    msg = types.point_cloud2(
         header=header,
         height=height,
         width=width,
@@ -440,6 +456,10 @@ def create_segmented_cloud(
         is_bigendian=False,
         point_step=SEGMENTED_POINT_STEP,
         row_step=SEGMENTED_POINT_STEP * width,
-        data=cloud.view(np.uint8),
+        data=b"",
         is_dense=False,
     )
+    # Set afterwards: rclpy's constructor copies its data argument once more (array('B', data))
+    # while its setter keeps an array.array as it is; 7 MB less to copy per frame.
+    msg.data = types.uint8(cloud.view(np.uint8))
+    return msg

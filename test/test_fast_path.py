@@ -266,3 +266,41 @@ def test_valid_points_match_the_row_mask(roi):
     if hi is not None:
         mask &= (xyz <= hi).all(axis=1)
     np.testing.assert_array_equal(_valid_points(xyz, lo, hi), np.flatnonzero(mask))
+
+
+# ---------------------------------------------------------------------------------------------
+# msg_tools: the segmented cloud's bytes are those of the structured-dtype writer
+# ---------------------------------------------------------------------------------------------
+def _segmented_bytes_before(xyz, labels, score, n):
+    from msg_tools.palette import packed_rgb
+    from msg_tools.point_cloud2 import _SEGMENTED_BUILD_DTYPE
+
+    cloud = np.empty(n, dtype=_SEGMENTED_BUILD_DTYPE)
+    flat = np.asarray(xyz).reshape(n, 3)
+    cloud["x"], cloud["y"], cloud["z"] = flat[:, 0], flat[:, 1], flat[:, 2]
+    lab = np.asarray(labels).reshape(n)
+    cloud["rgb"] = packed_rgb(lab)
+    cloud["label"] = lab
+    cloud["center_score"] = 0.0 if score is None else np.asarray(score).reshape(n)
+    return cloud.tobytes()
+
+
+@pytest.mark.parametrize("case", ["f32_u32", "f64_i64_none", "big_labels"])
+def test_segmented_cloud_bytes_match_the_structured_writer(case):
+    from msg_tools.msg_types import ROSBAGS
+    from msg_tools.point_cloud2 import create_segmented_cloud
+
+    rng = np.random.default_rng(4)
+    h, w = 12, 17
+    xyz = rng.normal(0, 1, (h, w, 3))
+    xyz[0, :3] = np.nan
+    labels = rng.integers(0, 40, (h, w))
+    score = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    if case == "f32_u32":
+        xyz, labels = xyz.astype(np.float32), labels.astype(np.uint32)
+    elif case == "f64_i64_none":
+        score = None
+    else:
+        labels = labels.astype(np.uint32) * 70001   # beyond the lookup table's range
+    msg = create_segmented_cloud(ROSBAGS.header("f"), xyz, labels, score, h, w, types=ROSBAGS)
+    assert bytes(msg.data) == _segmented_bytes_before(xyz, labels, score, h * w)
