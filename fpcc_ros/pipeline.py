@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from fpcc_ros.clustering import assign_to_center_points, assign_to_centers
-from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
-                               spatial_blocks, voxel_downsample)
+from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane, knn_graph,
+                               plane_tolerance, spatial_blocks, voxel_downsample)
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
@@ -42,6 +42,8 @@ class PipelineConfig:
     block_halo: float = 1.0   # context around each block, in part radii
     remove_floor: bool = True  # drop the dominant plane (floor around the tote) before the net
     max_points: int = 400_000  # guard: coarser voxels beyond this many network points (> VGA)
+    block_split: str = "halving"  # "halving" (features.spatial_blocks, as in training) or
+    #                               "balanced" (features.balanced_blocks: fewer blocks, halos)
 
     @classmethod
     def from_card(cls, card: ModelCard, **overrides: Any) -> "PipelineConfig":
@@ -85,6 +87,8 @@ class PipelineConfig:
         need(_finite(self.block_halo) and 0 <= self.block_halo <= 5, "block_halo",
              "between 0 and 5 part radii")
         need(isinstance(self.max_points, int) and self.max_points >= 1000, "max_points", ">= 1000")
+        need(self.block_split in ("halving", "balanced"), "block_split",
+             "'halving' or 'balanced'")
         if self.roi_min is not None and self.roi_max is not None and \
                 any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
             raise ConfigError(f"roi_min={list(self.roi_min)} must be below roi_max="
@@ -184,7 +188,7 @@ class Pipeline:
 
         # 3-4. FPCC-Net per spatial block, each run with a halo of neighbours around it
         runs = [self._run_block(net_xyz, floor_free[core], floor_free, clock) for core in
-                (spatial_blocks(net_xyz[floor_free], cfg.block_size) if len(floor_free) else [])]
+                (_blocks(net_xyz[floor_free], cfg) if len(floor_free) else [])]
         score = np.zeros(len(net_xyz), np.float32)
         for run in runs:
             score[run.core] = run.score
@@ -234,6 +238,11 @@ class Pipeline:
         emb, sc = self.model.run(feats, knn)
         clock.lap("inference")
         return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
+
+
+def _blocks(xyz: np.ndarray, cfg: PipelineConfig) -> list[np.ndarray]:
+    split = balanced_blocks if cfg.block_split == "balanced" else spatial_blocks
+    return split(xyz, cfg.block_size)
 
 
 def _valid_points(xyz: np.ndarray, roi_min: tuple | None, roi_max: tuple | None) -> np.ndarray:

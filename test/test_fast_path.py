@@ -304,3 +304,32 @@ def test_segmented_cloud_bytes_match_the_structured_writer(case):
         labels = labels.astype(np.uint32) * 70001   # beyond the lookup table's range
     msg = create_segmented_cloud(ROSBAGS.header("f"), xyz, labels, score, h, w, types=ROSBAGS)
     assert bytes(msg.data) == _segmented_bytes_before(xyz, labels, score, h * w)
+
+
+@pytest.mark.parametrize("n,block", [(8240, 2048), (2048, 2048), (2049, 2048), (10090, 2048),
+                                     (5, 2048), (0, 2048), (1000, 64)])
+def test_balanced_blocks_partition_into_the_fewest_blocks(n, block):
+    from fpcc_ros.features import balanced_blocks
+
+    rng = np.random.default_rng(n)
+    xyz = rng.uniform(0, [0.9, 0.7, 0.3], (n, 3))
+    blocks = balanced_blocks(xyz, block)
+    assert len(blocks) == -(-n // block)               # ceil(n / block) blocks
+    every = np.sort(np.concatenate(blocks)) if blocks else np.array([], int)
+    np.testing.assert_array_equal(every, np.arange(n))  # a partition of the points
+    sizes = [len(b) for b in blocks]
+    assert all(s <= block for s in sizes)
+    if len(blocks) > 1:
+        assert max(sizes) - min(sizes) <= 2 and min(sizes) >= block // 2
+    if n == 8240:   # the first cut is along x (the longest axis) at 2/5 of the points
+        first_two = np.concatenate(blocks[:2])
+        assert xyz[first_two, 0].max() <= np.sort(xyz[:, 0])[len(first_two)]
+
+
+def test_pipeline_block_split_is_validated():
+    from fpcc_ros.pipeline import ConfigError, PipelineConfig
+
+    cfg = PipelineConfig(part_radius=0.1)
+    assert cfg.replace(block_split="balanced").block_split == "balanced"
+    with pytest.raises(ConfigError, match="block_split"):
+        cfg.replace(block_split="random")
