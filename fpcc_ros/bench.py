@@ -566,6 +566,53 @@ class BenchReport:
                                 if r.counts else ""))
         return "\n".join(lines)
 
+    def markdown(self) -> str:
+        """The per-scene table and the goals as Markdown (README / docs)."""
+        stages = [s for s in ("decode", "valid", "downsample", "floor", "features", "inference",
+                              "nms", "cluster", "labels", "encode", "total")
+                  if any(s in r.stages_ms for r in self.scenes)]
+        m = self.machine
+        out = [f"Machine: {m.get('cpu')}, {m.get('cpus')} CPUs; onnxruntime {m.get('onnxruntime')} "
+               f"{', '.join(m.get('providers') or [])}; model `{self.model.get('name')}`"
+               + (" (untrained)" if self.model.get("untrained") else "")
+               + (f", graph: {self.model['graph']}" if self.model.get("graph") else "")
+               + f"; median / p90 of {self.runs} warm runs, ms.", "",
+               "| scene | valid pts | network pts | GT | pred | " + " | ".join(_short(s) for s in stages)
+               + " | peak RSS MB | P | R |",
+               "|" + "---|" * (len(stages) + 8)]
+        for r in self.scenes:
+            cells = " | ".join(_pair(r.stat(s), r.stat(s, 90)) for s in stages)
+            pr = (f"{r.counts.precision:.3f} | {r.counts.recall:.3f}" if r.counts else "n/a | n/a")
+            gt = "-" if r.gt_instances is None else str(r.gt_instances)
+            out.append(f"| {r.name} | {r.valid_points} | {r.inferred_points} | {gt} | {r.predicted} | "
+                       f"{cells} | {r.peak_rss_mb:.0f} | {pr} |")
+        out += ["", "| goal | measured | limit | verdict |", "|---|---|---|---|"]
+        for g in self.goals():
+            value = g["value"]
+            shown = (f"{value:.1f} {g['unit']}" if isinstance(value, (int, float)) and value == value
+                     else str(value))
+            limit = f"<= {g['limit']:g} {g['unit']}" if g["limit"] is not None else ""
+            out.append(f"| {g['goal']} | {shown} | {limit} | "
+                       f"{ {True: 'pass', False: 'FAIL', None: '-'}[g['ok']]} |")
+        if self.dds:
+            out += ["", f"Live node over DDS ({self.dds['clouds']}; {self.dds['transport']}); "
+                    "latency = publish -> last output received, ms.", "",
+                    "| camera rate | sent | outputs | output rate | dropped | latency median / p90 / max "
+                    "| node receive-to-publish median | frame age trend | node RSS median / peak MB | verdict |",
+                    "|---|---|---|---|---|---|---|---|---|---|"]
+            for r in self.dds["rates"]:
+                lat = r["latency_ms"]
+                node = r["node"].get("node_latency_median_ms")
+                out.append(f"| {r['rate_hz']:g} Hz | {r['frames_sent']} | {r['outputs']} | "
+                           f"{r['output_rate_hz']:.2f} Hz | {r['dropped']} | "
+                           f"{lat.get('median', float('nan')):.0f} / {lat.get('p90', float('nan')):.0f} / "
+                           f"{lat.get('max', float('nan')):.0f} | "
+                           f"{'-' if node is None else f'{node:.0f}'} | "
+                           f"{r['age_trend_ms_per_s']:+.1f} ms/s | "
+                           f"{r['node_rss_mb'].get('median', float('nan')):.0f} / "
+                           f"{r['node_rss_peak_mb']:.0f} | {r['verdict']} |")
+        return "\n".join(out) + "\n"
+
     def variants_table(self) -> str:
         """The default settings and each variant side by side: latency, network work, accuracy
         (counts summed over the scenes with ground truth) and the change against full resolution."""

@@ -78,6 +78,8 @@ def test_bench_smoke(tiny_scene, tiny_pipeline, tmp_path):
     assert any(g["goal"].startswith("NMS + clustering") for g in data["goals"])
     png = bench.plot(report, tmp_path / "bench.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    md = report.markdown()
+    assert md.count("\n| synth/") == 2 and "| goal | measured |" in md
     text = report.table() + report.summary()
     assert scene.name in text and "goals:" in text
 

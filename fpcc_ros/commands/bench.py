@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the full report as JSON")
     parser.add_argument("--plot", type=Path, default=None, metavar="PNG",
                         help="latency vs number of instances and vs number of valid points")
+    parser.add_argument("--markdown", type=Path, default=None, metavar="MD",
+                        help="write the per-scene table and the goals as Markdown")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
                         help="generated scenes are kept here (default: %(default)s)")
     parser.add_argument("--block-halo", type=float, default=None,
@@ -131,6 +133,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.json:
             print(f"wrote {bench.write_json(report, args.json)}")
+        if args.markdown:
+            args.markdown.parent.mkdir(parents=True, exist_ok=True)
+            args.markdown.write_text(report.markdown())
+            print(f"wrote {args.markdown}")
         if args.plot and report.scenes:
             print(f"wrote {bench.plot(report, args.plot)}")
     except OSError as exc:
