@@ -747,7 +747,7 @@ def plot(report: BenchReport, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(17, 4.6))
     synth = sorted((s for s in report.synth() if s.num_parts is not None), key=lambda s: s.num_parts)
     if synth:
         x = [s.num_parts for s in synth]
@@ -776,6 +776,18 @@ def plot(report: BenchReport, path: Path) -> Path:
         ax2.plot(xs / 1e3, lin["intercept_ms"] + lin["ms_per_100k_valid_points"] * xs / 1e5, "k:",
                  label=f"fit: {lin['ms_per_100k_valid_points']:.0f} ms/100k pts + "
                        f"{lin['intercept_ms']:.0f} ms")
+    for kind, (marker, label) in markers.items():
+        rows = [s for s in report.scenes if s.kind == kind and s.inferred_points]
+        if rows:
+            ax3.scatter([s.inferred_points / 1e3 for s in rows], [s.stat("total") for s in rows],
+                        marker=marker, label=label)
+    ax3.set_xlabel("points through the network, halos included (thousands)")
+    ax3.set_ylabel("end-to-end latency, ms (median)")
+    ax3.set_xlim(left=0)
+    ax3.set_ylim(bottom=0)
+    ax3.set_title("latency vs network work")
+    ax3.grid(alpha=0.3)
+    ax3.legend(fontsize=8)
     ax2.set_xlabel("valid points (thousands)")
     ax2.set_ylabel("end-to-end latency, ms (median)")
     ax2.set_xlim(left=0)
