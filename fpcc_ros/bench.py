@@ -577,7 +577,7 @@ class BenchReport:
                + (" (untrained)" if self.model.get("untrained") else "")
                + (f", graph: {self.model['graph']}" if self.model.get("graph") else "")
                + f"; median / p90 of {self.runs} warm runs, ms.", "",
-               "| scene | valid pts | network pts | GT | pred | " + " | ".join(_short(s) for s in stages)
+               "| scene | valid pts | pts through net | GT | pred | " + " | ".join(_short(s) for s in stages)
                + " | peak RSS MB | P | R |",
                "|" + "---|" * (len(stages) + 8)]
         for r in self.scenes:
@@ -594,6 +594,8 @@ class BenchReport:
             limit = f"<= {g['limit']:g} {g['unit']}" if g["limit"] is not None else ""
             out.append(f"| {g['goal']} | {shown} | {limit} | "
                        f"{ {True: 'pass', False: 'FAIL', None: '-'}[g['ok']]} |")
+        if self.variants or any(r.full_res for r in self.scenes):
+            out += ["", "```", self.variants_table(), "```"]
         if self.dds:
             out += ["", f"Live node over DDS ({self.dds['clouds']}; {self.dds['transport']}); "
                     "latency = publish -> last output received, ms.", "",
@@ -611,6 +613,7 @@ class BenchReport:
                            f"{r['age_trend_ms_per_s']:+.1f} ms/s | "
                            f"{r['node_rss_mb'].get('median', float('nan')):.0f} / "
                            f"{r['node_rss_peak_mb']:.0f} | {r['verdict']} |")
+        out += [""] + [f"Note: {n}" for n in self.notes]
         return "\n".join(out) + "\n"
 
     def variants_table(self) -> str:
@@ -685,6 +688,34 @@ class BenchReport:
             lines.append(f"  [{verdict}] {g['goal']}: {shown}{limit}")
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
+
+
+def _run_from_json(s: dict[str, Any]) -> SceneRun:
+    acc = s.get("accuracy")
+    counts = None if not acc else InstanceCounts(
+        true_positives=acc["true_positives"], predictions=acc["predictions"],
+        ground_truths=acc["ground_truths"])
+    return SceneRun(name=s["scene"], kind=s["kind"], points=s["points"],
+                    valid_points=s["valid_points"], network_points=s["network_points"],
+                    gt_instances=s["gt_instances_visible"], num_parts=s["num_parts"],
+                    predicted=s["predicted_instances"],
+                    stages_ms={k: v["runs"] for k, v in s["stages_ms"].items()}, counts=counts,
+                    peak_rss_mb=s["peak_rss_mb"],
+                    gt_note="" if s.get("ground_truth") == "yes" else s.get("ground_truth", ""),
+                    full_res=s.get("full_res"), inferred_points=s.get("inferred_points", 0))
+
+
+def report_from_json(data: dict[str, Any]) -> BenchReport:
+    """A report written by :func:`write_json`, to print, plot or tabulate again without rerunning
+    (precision/recall come back from the counts; MUCov/MWCov sums are not kept)."""
+    if data.get("format") != REPORT_FORMAT:
+        raise ValueError(f"not a {REPORT_FORMAT} report (format {data.get('format')!r})")
+    return BenchReport(
+        scenes=[_run_from_json(s) for s in data["scenes"]], machine=data["machine"],
+        model=data["model"], config=data["pipeline"], runs=data["runs_per_scene"],
+        postprocess=data.get("postprocess"), dds=data.get("dds"), notes=data.get("notes", []),
+        variants=[{**v, "scenes": [_run_from_json(s) for s in v["scenes"]]}
+                  for v in data.get("variants", [])])
 
 
 def _goal(name: str, value: float, unit: str, limit: float) -> dict[str, Any]:

@@ -76,6 +76,8 @@ def test_bench_smoke(tiny_scene, tiny_pipeline, tmp_path):
     assert data["format"] == bench.REPORT_FORMAT
     assert data["scenes"][0]["stages_ms"]["total"]["runs"] == run.stages_ms["total"]
     assert any(g["goal"].startswith("NMS + clustering") for g in data["goals"])
+    again = bench.report_from_json(data)   # re-rendered from the file, same tables
+    assert again.markdown() == report.markdown() and again.table() == report.table()
     png = bench.plot(report, tmp_path / "bench.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     md = report.markdown()

@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the full report as JSON")
     parser.add_argument("--plot", type=Path, default=None, metavar="PNG",
                         help="latency vs number of instances and vs number of valid points")
+    parser.add_argument("--from-json", type=Path, default=None, metavar="REPORT",
+                        help="do not measure: print (and --plot/--markdown) a saved --json report")
     parser.add_argument("--markdown", type=Path, default=None, metavar="MD",
                         help="write the per-scene table and the goals as Markdown")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
@@ -73,6 +75,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc bench: {message}", file=sys.stderr)
         return 2
 
+    if args.from_json is not None:
+        import json
+        try:
+            report = bench.report_from_json(json.loads(args.from_json.read_text()))
+        except (OSError, ValueError, KeyError) as exc:
+            return fail(f"--from-json {args.from_json}: {exc}")
+        return _output(report, args, fail)
     extra = {k: v for k, v in (("block_halo", args.block_halo), ("block_size", args.block_size))
              if v is not None}
     try:
@@ -118,6 +127,12 @@ def run(args: argparse.Namespace) -> int:
                              seconds=args.dds_seconds, threads=args.threads,
                              provider=args.provider, voxel_size=args.voxel_size,
                              progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+
+    return _output(report, args, fail)
+
+
+def _output(report, args: argparse.Namespace, fail) -> int:
+    from fpcc_ros import bench
 
     if report.scenes:
         print(report.table())
