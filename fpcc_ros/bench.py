@@ -787,7 +787,8 @@ def plot(report: BenchReport, path: Path) -> Path:
             if all(stage in s.stages_ms for s in synth):
                 med = np.array([s.stat(stage) for s in synth])
                 p90 = np.array([s.stat(stage, 90) for s in synth])
-                ax1.errorbar(x, med, yerr=[np.zeros_like(med), p90 - med], fmt=style, capsize=3,
+                ax1.errorbar(x, med, yerr=np.vstack([np.zeros_like(med), p90 - med]), fmt=style,
+                             capsize=3,
                              label=("end to end" if stage == "total" else stage))
         ax1.set_xlabel("parts in the bin (synthetic 640x480 scenes)")
         ax1.set_ylabel("latency, ms (median, bar to p90)")
