@@ -504,6 +504,11 @@ class BenchReport:
         if growth:
             goals.append(_goal(f"latency growth {growth['from_parts']} -> {growth['to_parts']} "
                                "parts", 100 * growth["growth"], "%", 15.0))
+            per_point = growth["ms_per_1k_inferred_points"]
+            if per_point[0] > 0:
+                goals.append(_goal(f"  the same per point through the network (the O(nm) claim; "
+                                   f"network points {100 * growth['inferred_points_growth']:+.0f}%)",
+                                   100 * (per_point[1] / per_point[0] - 1.0), "%", 15.0))
         peak = max((s.peak_rss_mb for s in self.scenes), default=float("nan"))
         goals.append(_goal("peak RSS of the benchmark process (node: see --dds)", peak, "MB", 600.0))
         if self.dds:
