@@ -35,49 +35,65 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
 
     Only (point, center) pairs within d_max in 3D can be chosen, and in a bin they are a few per
     cent of all pairs (100k points x 18 centers: 49k of 1.8M). So, per chunk of points: 3D
-    distances to the centers near the chunk's bounding box, then embedding dot products for just
-    the points and centers that have an admissible pair. The choice per point is the one of
-    the dense rule: the admissible center nearest in feature space, then the gate. The small
-    products use numpy's own loops, not BLAS: OpenBLAS wakes its thread pool for each one,
-    which on a 2-core machine busy with onnxruntime costs more than the product.
+    distances (float32) to the centers near the chunk's bounding box; a point with one
+    admissible center only needs the gate (one dot product), one with several the embedding dot
+    products with those. The choice per point is the one of the dense rule: the admissible
+    center nearest in feature space, then the gate. The small products use numpy's own loops,
+    not BLAS: OpenBLAS wakes its thread pool for each one, which on a 2-core machine busy with
+    onnxruntime costs more than the product.
     """
     n = len(xyz)
     labels = np.zeros(n, dtype=np.int32)
     if len(center_xyz) == 0 or n == 0:
         return labels
     cxyz = np.asarray(center_xyz, dtype=np.float64)
+    cxyz32 = cxyz.astype(np.float32)
     cemb = np.asarray(center_embedding, dtype=np.float32)
     cemb_sq = np.einsum("ij,ij->i", cemb, cemb)
     d2 = float(d_max) * float(d_max)
     gate2 = float(feature_gate) * float(feature_gate)
-    cols_xyz = np.array(xyz, dtype=np.float64).T.copy()  # x, y, z rows: contiguous per chunk
-    for start in range(0, n, ROW_CHUNK):
-        px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
-        lo = np.array([px.min(), py.min(), pz.min()])
-        hi = np.array([px.max(), py.max(), pz.max()])
-        gap = np.maximum(np.maximum(lo - cxyz, cxyz - hi), 0.0)   # center to the chunk's box
-        near = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) <= d2)
+    cols_xyz = np.array(xyz, dtype=np.float32).T.copy()  # x, y, z rows: contiguous per chunk
+    starts = np.arange(0, n, ROW_CHUNK)
+    # every chunk's bounding box at once, then the centers within d_max of each box
+    lo = np.minimum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)  # (chunks, 3)
+    hi = np.maximum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)
+    gap = np.maximum(np.maximum(lo[:, None] - cxyz[None], cxyz[None] - hi[:, None]), 0.0)
+    near_chunk = np.einsum("cjk,cjk->cj", gap, gap) <= d2                      # (chunks, m)
+    for k, start in enumerate(starts):
+        near = np.flatnonzero(near_chunk[k])
         if len(near) == 0:
             continue
-        c = cxyz[near]
-        space = (px[:, None] - c[None, :, 0]) ** 2
-        space += (py[:, None] - c[None, :, 1]) ** 2
-        space += (pz[:, None] - c[None, :, 2]) ** 2
+        px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
+        c = cxyz32[near]
+        # (centers, points) layout: the reductions below run along contiguous rows
+        space = (px[None, :] - c[:, 0:1]) ** 2
+        space += (py[None, :] - c[:, 1:2]) ** 2
+        space += (pz[None, :] - c[:, 2:3]) ** 2
         admissible = space <= d2
-        rows = np.flatnonzero(admissible.any(axis=1))
+        count = admissible.sum(axis=0, dtype=np.int32)
+        # one admissible center (most points): it is the choice; only the gate needs |e - c|
+        one = np.flatnonzero(count == 1)
+        if len(one):
+            pick = near[np.argmax(admissible[:, one], axis=0)]
+            e = np.asarray(embedding[start + one], dtype=np.float32)
+            dist_sq = (np.einsum("ij,ij->i", e, e) - 2.0 * np.einsum("ij,ij->i", e, cemb[pick])
+                       + cemb_sq[pick])
+            ok = dist_sq <= gate2
+            labels[start + one[ok]] = (pick[ok] + 1).astype(np.int32)
+        # several: the nearest in feature space among them
+        rows = np.flatnonzero(count > 1)
         if len(rows) == 0:
             continue
-        cols = np.flatnonzero(admissible[rows].any(axis=0))
         e = np.asarray(embedding[start + rows], dtype=np.float32)
         # |e - c|^2 = |e|^2 - 2 e.c + |c|^2; the argmin needs only the last two terms
-        feat = np.einsum("ik,jk->ij", e, cemb[near[cols]])  # no BLAS threads for a small product
+        feat = np.einsum("jk,ik->ji", cemb[near], e)  # numpy loops: no BLAS threads woken
         feat *= -2.0
-        feat += cemb_sq[near[cols]]
-        np.putmask(feat, ~admissible[np.ix_(rows, cols)], np.inf)
-        best = np.argmin(feat, axis=1)
-        best_sq = feat[np.arange(len(rows)), best] + np.einsum("ij,ij->i", e, e)
-        ok = np.isfinite(best_sq) & (best_sq <= gate2)
-        labels[start + rows[ok]] = (near[cols[best[ok]]] + 1).astype(np.int32)
+        feat += cemb_sq[near][:, None]
+        np.putmask(feat, ~admissible[:, rows], np.inf)
+        best = np.argmin(feat, axis=0)
+        best_sq = feat[best, np.arange(len(rows))] + np.einsum("ij,ij->i", e, e)
+        ok = best_sq <= gate2
+        labels[start + rows[ok]] = (near[best[ok]] + 1).astype(np.int32)
     return labels
 
 
