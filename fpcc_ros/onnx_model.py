@@ -71,6 +71,10 @@ class FpccModel:
         options.intra_op_num_threads = max(0, int(threads))
         options.inter_op_num_threads = 1
         options.log_severity_level = 3
+        # Workers spin between the operators of a run (fast hand-offs) but stop when it ends:
+        # left spinning they hold a core for ~25 ms after every run, which the kNN queries and
+        # the node's DDS threads need on a 2-core machine.
+        options.add_session_config_entry("session.force_spinning_stop", "1")
         try:
             return ort.InferenceSession(str(self.path), sess_options=options, providers=providers)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types

@@ -186,9 +186,15 @@ class Pipeline:
         floor_free = np.flatnonzero(~on_floor)
         clock.lap("floor")
 
-        # 3-4. FPCC-Net per spatial block, each run with a halo of neighbours around it
-        runs = [self._run_block(net_xyz, floor_free[core], floor_free, clock) for core in
-                (_blocks(net_xyz[floor_free], cfg) if len(floor_free) else [])]
+        # 3. spatial blocks, each with a halo of neighbours around it; all inputs (features,
+        #    kNN on every core) before the first network pass, while onnxruntime's threads idle
+        inputs = [self._block_inputs(net_xyz, floor_free[core], floor_free) for core in
+                  (_blocks(net_xyz[floor_free], cfg) if len(floor_free) else [])]
+        clock.lap("features")
+
+        # 4. FPCC-Net per block
+        runs = [self._run_block(*block) for block in inputs]
+        clock.lap("inference")
         score = np.zeros(len(net_xyz), np.float32)
         for run in runs:
             score[run.core] = run.score
@@ -222,9 +228,9 @@ class Pipeline:
                                   timings_ms=clock.laps)
 
 
-    def _run_block(self, xyz: np.ndarray, core: np.ndarray, candidates: np.ndarray,
-                   clock: "_StageClock") -> _BlockRun:
-        """Network pass over ``core`` plus the ``candidates`` within the halo around it."""
+    def _block_inputs(self, xyz: np.ndarray, core: np.ndarray, candidates: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``core`` plus the ``candidates`` within the halo around it, and their network inputs."""
         cfg = self.config
         halo = cfg.block_halo * cfg.part_radius
         lo, hi = xyz[core].min(axis=0) - halo, xyz[core].max(axis=0) + halo
@@ -234,9 +240,12 @@ class Pipeline:
         ext = np.concatenate([core, np.flatnonzero(inside)])
         feats = block_features(xyz[ext], cfg.part_radius)[None]
         knn = knn_graph(xyz[ext], self.model.card.k, workers=self._knn_workers)[None]
-        clock.lap("features")
+        return core, ext, feats, knn
+
+    def _run_block(self, core: np.ndarray, ext: np.ndarray, feats: np.ndarray,
+                   knn: np.ndarray) -> _BlockRun:
+        """One network pass; the scores of the core points, the embeddings of all."""
         emb, sc = self.model.run(feats, knn)
-        clock.lap("inference")
         return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
 
 
