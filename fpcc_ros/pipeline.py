@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from fpcc_ros.clustering import assign_to_center_points, assign_to_centers
-from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane, knn_graph,
-                               plane_tolerance, spatial_blocks, voxel_downsample)
+from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane,
+                               knn_graphs_in_boxes, plane_tolerance, spatial_blocks,
+                               voxel_downsample)
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
@@ -188,8 +189,7 @@ class Pipeline:
 
         # 3. spatial blocks, each with a halo of neighbours around it; all inputs (features,
         #    kNN on every core) before the first network pass, while onnxruntime's threads idle
-        inputs = [self._block_inputs(net_xyz, floor_free[core], floor_free) for core in
-                  (_blocks(net_xyz[floor_free], cfg) if len(floor_free) else [])]
+        inputs = self._block_inputs(net_xyz, floor_free)
         clock.lap("features")
 
         # 4. FPCC-Net per block
@@ -228,19 +228,27 @@ class Pipeline:
                                   timings_ms=clock.laps)
 
 
-    def _block_inputs(self, xyz: np.ndarray, core: np.ndarray, candidates: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``core`` plus the ``candidates`` within the halo around it, and their network inputs."""
+    def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray
+                      ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per spatial block of the ``candidates``: its core, the core plus the candidates
+        within the halo around it (``ext``, indices into ``xyz``), and their network inputs."""
         cfg = self.config
+        if len(candidates) == 0:
+            return []
+        pts = xyz[candidates]
         halo = cfg.block_halo * cfg.part_radius
-        lo, hi = xyz[core].min(axis=0) - halo, xyz[core].max(axis=0) + halo
-        inside = np.zeros(len(xyz), bool)
-        inside[candidates] = ((xyz[candidates] >= lo) & (xyz[candidates] <= hi)).all(axis=1)
-        inside[core] = False
-        ext = np.concatenate([core, np.flatnonzero(inside)])
-        feats = block_features(xyz[ext], cfg.part_radius)[None]
-        knn = knn_graph(xyz[ext], self.model.card.k, workers=self._knn_workers)[None]
-        return core, ext, feats, knn
+        cores, exts, boxes = [], [], []
+        for core in _blocks(pts, cfg):
+            lo, hi = pts[core].min(axis=0) - halo, pts[core].max(axis=0) + halo
+            inside = ((pts >= lo) & (pts <= hi)).all(axis=1)
+            inside[core] = False
+            cores.append(core)
+            exts.append(np.concatenate([core, np.flatnonzero(inside)]))
+            boxes.append((lo, hi))
+        # one KD-tree over all candidates: each point is queried about once, not once per halo
+        knns = knn_graphs_in_boxes(pts, exts, boxes, self.model.card.k, self._knn_workers)
+        return [(candidates[core], candidates[ext], block_features(pts[ext], cfg.part_radius)[None],
+                 knn[None]) for core, ext, knn in zip(cores, exts, knns)]
 
     def _run_block(self, core: np.ndarray, ext: np.ndarray, feats: np.ndarray,
                    knn: np.ndarray) -> _BlockRun:

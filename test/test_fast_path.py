@@ -333,3 +333,69 @@ def test_pipeline_block_split_is_validated():
     assert cfg.replace(block_split="balanced").block_split == "balanced"
     with pytest.raises(ConfigError, match="block_split"):
         cfg.replace(block_split="random")
+
+
+def _halo_blocks(xyz, block, halo):
+    from fpcc_ros.features import spatial_blocks
+
+    exts, boxes = [], []
+    for core in spatial_blocks(xyz, block):
+        lo, hi = xyz[core].min(axis=0) - halo, xyz[core].max(axis=0) + halo
+        inside = ((xyz >= lo) & (xyz <= hi)).all(axis=1)
+        inside[core] = False
+        exts.append(np.concatenate([core, np.flatnonzero(inside)]))
+        boxes.append((lo, hi))
+    return exts, boxes
+
+
+@pytest.mark.parametrize("name", ["camera", "quantized", "flat"])
+def test_knn_in_boxes_gives_knn_graphs_neighbour_sets(name):
+    from fpcc_ros.features import knn_graph, knn_graphs_in_boxes
+
+    xyz = _clouds()[name][:6000]
+    exts, boxes = _halo_blocks(xyz, 700, halo=0.1)
+    got = knn_graphs_in_boxes(xyz, exts, boxes, 16, workers=2)
+    assert len(got) == len(exts) > 4
+    for ext, g in zip(exts, got):
+        want = knn_graph(xyz[ext], 16)
+        assert g.shape == want.shape and g.dtype == want.dtype
+        # the same neighbours (sets) at the same distances; order may differ only among ties
+        np.testing.assert_array_equal(np.sort(g, axis=1), np.sort(want, axis=1))
+        pts = xyz[ext]
+        dist = lambda k: np.linalg.norm(pts[k] - pts[:, None], axis=2)  # noqa: E731
+        np.testing.assert_array_equal(dist(g), dist(want))
+        if name != "quantized":   # (duplicated points there: distance-0 ties with itself)
+            assert (g[:, 0] == np.arange(len(ext))).all()   # itself first
+
+
+def test_knn_in_boxes_small_blocks_fall_back_to_knn_graph():
+    from fpcc_ros.features import knn_graph, knn_graphs_in_boxes
+
+    xyz = _clouds()["camera"][:40]
+    order = np.argsort(xyz[:, 0])
+    exts = [order[:5], order[5:]]           # split along x: each box holds only its block
+    boxes = [(xyz[e].min(axis=0), xyz[e].max(axis=0)) for e in exts]
+    got = knn_graphs_in_boxes(xyz, exts, boxes, 16)
+    np.testing.assert_array_equal(got[0], knn_graph(xyz[exts[0]], 16))   # fewer points than k
+    np.testing.assert_array_equal(np.sort(got[1], 1), np.sort(knn_graph(xyz[exts[1]], 16), 1))
+    # a block that is not every point of its box: rows reaching outside are queried in the block
+    odd = [np.arange(0, 40, 2)]
+    box = [(xyz.min(axis=0), xyz.max(axis=0))]
+    np.testing.assert_array_equal(np.sort(knn_graphs_in_boxes(xyz, odd, box, 16)[0], 1),
+                                  np.sort(knn_graph(xyz[odd[0]], 16), 1))
+
+
+def test_network_output_does_not_depend_on_neighbour_order():
+    """Why neighbour sets suffice: every EdgeConv takes a max over the row."""
+    from fpcc_ros.features import block_features, knn_graph
+
+    sess = _session(TINY.read_bytes())
+    xyz = _clouds()["quantized"][:900]
+    feats = block_features(xyz, 0.05)[None]
+    knn = knn_graph(xyz, 16)
+    rng = np.random.default_rng(0)
+    shuffled = np.take_along_axis(knn, np.argsort(rng.random(knn.shape), axis=1), axis=1)
+    a = sess.run(None, {"features": feats, "knn": knn[None]})
+    b = sess.run(None, {"features": feats, "knn": shuffled[None]})
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
