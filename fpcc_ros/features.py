@@ -40,7 +40,10 @@ def voxel_downsample(xyz: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np
         cells[d] = np.floor(step, out=step)
     dims = cells.max(axis=1) + 1
     keys = (cells[0] * dims[1] + cells[1]) * dims[2] + cells[2]
-    total = int(dims[0]) * int(dims[1]) * int(dims[2])
+    total = int(dims[0]) * int(dims[1]) * int(dims[2])  # Python int: never overflows
+    if total >= 2**62:  # keys would overflow int64 (kilometre extents at mm voxels): sort rows
+        _, keep, inverse = np.unique(cells.T, axis=0, return_index=True, return_inverse=True)
+        return keep, inverse.reshape(-1)
     if total > DENSE_VOXEL_CELLS_PER_POINT * n + 4096:  # sparse outliers: sort instead
         _, keep, inverse = np.unique(keys, return_index=True, return_inverse=True)
         return keep, inverse.reshape(-1)

@@ -63,3 +63,20 @@ def test_empty_and_all_nan_clouds_give_no_instances(model):
     for xyz in (np.zeros((0, 3), np.float32), np.full((100, 3), np.nan, np.float32)):
         result = pipe.segment(xyz)
         assert result.num_instances == 0 and not result.labels.any()
+
+
+def test_absurd_coordinates_are_treated_as_no_return(model):
+    rng = np.random.default_rng(5)
+    xyz = _scene(2)
+    xyz[:100] = rng.uniform(-1, 1, (100, 3)) * 1e30
+    result = Pipeline(model, PipelineConfig.from_card(model.card, part_radius=0.05,
+                                                      min_points=1)).segment(xyz)
+    assert not result.labels[:100].any()
+    assert result.num_valid == int(np.isfinite(xyz[100:]).all(axis=1).sum())
+
+
+def test_voxel_downsample_survives_kilometre_extents():
+    from fpcc_ros.features import voxel_downsample
+    xyz = np.array([[0.0, 0, 0], [0.001, 0, 0], [9000.0, 9000.0, 9000.0]])
+    keep, inverse = voxel_downsample(xyz, 1e-4)
+    assert len(keep) == 3 and sorted(inverse.tolist()) == [0, 1, 2]
