@@ -380,7 +380,11 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
         steps = max(sums["steps"], 1)
         row = {"epoch": epoch + 1, "lr": lr, **{k: sums[k] / steps for k in ("loss", "loss_ef", "loss_cs")}}
         if val_scenes:
-            row.update(validate(model, val_scenes, config, postprocess))
+            try:
+                row.update(validate(model, val_scenes, config, postprocess))
+            except Exception as exc:  # noqa: BLE001 - an epoch of training is worth more
+                print(f"validation failed after epoch {epoch + 1} ({type(exc).__name__}: {exc}); "
+                      "saving the checkpoint without validation metrics", file=sys.stderr)
         row["seconds"] = _now() - epoch_start
         history.append(_plain(row))
         write_history(run_dir, history)
