@@ -51,6 +51,10 @@ def export_onnx(model: FPCCNet, path: str | Path, k: int) -> Path:
             except Exception as dynamo_error:
                 raise RuntimeError(f"ONNX export failed: legacy exporter: {legacy_error}; dynamo "
                                    f"exporter: {dynamo_error}") from dynamo_error
+    # exact graph rewrite for onnxruntime's CPU kernels (global max-pool as GlobalMaxPool);
+    # optimize_file checks the rewritten outputs against the original before replacing it
+    from fpcc_ros.graph_rewrite import optimize_file
+    optimize_file(path, path)
     return path
 
 
