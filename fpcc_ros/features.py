@@ -119,13 +119,35 @@ def block_features(xyz: np.ndarray, part_radius: float) -> np.ndarray:
     return np.concatenate([shifted / part_radius, shifted / extent], axis=1).astype(np.float32)
 
 
-def knn_graph(xyz: np.ndarray, k: int, workers: int = 1) -> np.ndarray:
+def neighbour_columns(k: int, near: int, reach: int) -> np.ndarray:
+    """Which of the ``reach`` nearest neighbours form a k-wide dilated neighbourhood: the
+    ``near`` closest (local shape), then ``k - near`` spread evenly over the rest (context).
+
+    All three EdgeConv layers share one xyz graph (no feature-space kNN): with the k nearest
+    alone, three hops reach ~0.7 part radii at the default voxel, too little to tell where a
+    part's center is; the spread-out edges let three hops cover the whole part.
+    """
+    if reach <= k or near >= k:
+        return np.arange(k)
+    far = np.linspace(near, reach - 1, k - near).round().astype(np.int64)
+    return np.concatenate([np.arange(near), far])
+
+
+def select_neighbours(idx: np.ndarray, k: int, near: int, reach: int) -> np.ndarray:
+    """A (n, reach) nearest-first neighbour table cut to the (n, k) dilated neighbourhood."""
+    return idx if idx.shape[1] == k else np.ascontiguousarray(idx[:, neighbour_columns(k, near, reach)])
+
+
+def knn_graph(xyz: np.ndarray, k: int, workers: int = 1, near: int = 0,
+              reach: int = 0) -> np.ndarray:
     """(n, k) int64 indices of each point's k nearest neighbours in 3D, itself first.
 
     Blocks smaller than k repeat their farthest neighbour so the graph keeps a fixed width.
     ``workers`` > 1 (or -1: all CPUs) splits the queries over threads; every query is answered
     alone, so the result does not depend on it.
     """
+    if reach > k:  # dilated: the reach nearest, then the card's column selection
+        return select_neighbours(knn_graph(xyz, reach, workers), k, near, reach)
     n = len(xyz)
     kk = min(k, n)
     _, idx = cKDTree(xyz).query(xyz, k=kk, workers=workers)

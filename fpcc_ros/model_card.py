@@ -32,6 +32,8 @@ class ModelCard:
     score_threshold: float = 0.6
     feature_gate: float = 1.0
     embedding_dim: int = EMBEDDING_DIM
+    knn_near: int = 0    # 0 = plain kNN; else the dilated neighbourhood of features.neighbour_columns
+    knn_reach: int = 0
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
     trained_on: dict[str, Any] = field(default_factory=dict)
@@ -57,8 +59,10 @@ class ModelCard:
                 "knn": {
                     "dtype": "int64",
                     "shape": ["batch", "points", self.k],
-                    "meaning": "indices of the k nearest neighbours in 3D within the block, "
-                    "the point itself first (fpcc_ros.features.knn_graph)",
+                    "meaning": "indices of neighbours in 3D within the block, the point itself "
+                    "first (fpcc_ros.features.knn_graph): the k nearest, or when knn_reach > k "
+                    "the knn_near nearest then k - knn_near spread evenly over the knn_reach "
+                    "nearest",
                 },
             },
             "outputs": {

@@ -13,7 +13,7 @@ import numpy as np
 
 from fpcc_ros.clustering import assign_to_center_points, assign_to_centers
 from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane,
-                               knn_graphs_in_boxes, plane_tolerance, spatial_blocks,
+                               knn_graphs_in_boxes, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
@@ -247,7 +247,10 @@ class Pipeline:
             exts.append(np.concatenate([core, np.flatnonzero(inside)]))
             boxes.append((lo, hi))
         # one KD-tree over all candidates: each point is queried about once, not once per halo
-        knns = knn_graphs_in_boxes(pts, exts, boxes, self.model.card.k, self._knn_workers)
+        card = self.model.card
+        width = max(card.k, card.knn_reach)
+        knns = [select_neighbours(g, card.k, card.knn_near, width) for g in
+                knn_graphs_in_boxes(pts, exts, boxes, width, self._knn_workers)]
         return [(candidates[core], candidates[ext], block_features(pts[ext], cfg.part_radius)[None],
                  knn[None]) for core, ext, knn in zip(cores, exts, knns)]
 

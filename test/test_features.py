@@ -67,3 +67,15 @@ def test_bounded_downsample_caps_network_points_and_keeps_the_mapping():
     assert np.abs(cube[keep][inverse] - cube).max() <= np.sqrt(3) * voxel
     small_keep, _, small_voxel = _bounded_downsample(cube[:1000], 0.004, max_points=5000)
     assert small_voxel == 0.004 and len(small_keep) <= 1000
+
+
+def test_dilated_neighbourhood_keeps_the_nearest_and_spreads_the_rest():
+    from fpcc_ros.features import neighbour_columns
+    cols = neighbour_columns(k=6, near=3, reach=12)
+    assert cols.tolist() == [0, 1, 2, 3, 7, 11]          # 3 nearest, then 3 spread over 3..11
+    assert neighbour_columns(16, 0, 0).tolist() == list(range(16))   # plain kNN
+    xyz = np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]        # points on a line, 1 apart
+    graph = knn_graph(xyz, 6, near=3, reach=12)
+    plain = knn_graph(xyz, 12)
+    np.testing.assert_array_equal(graph, plain[:, [0, 1, 2, 3, 7, 11]])
+    assert graph[:, 0].tolist() == list(range(20))      # itself first

@@ -28,6 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block-size", type=int, default=4096,
                         help="points per block (smaller trains faster; the card records it)")
     parser.add_argument("--k", type=int, default=16, help="neighbours per point in the kNN graph")
+    parser.add_argument("--knn-near", type=int, default=0,
+                        help="dilated neighbourhood: this many nearest, the rest spread over "
+                        "--knn-reach nearest (0 = plain kNN)")
+    parser.add_argument("--knn-reach", type=int, default=0)
     parser.add_argument("--voxel-factor", type=float, default=0.08,
                         help="voxel size as a fraction of the part radius")
     parser.add_argument("--alpha", type=float, default=3.0, help="weight of the center-score loss")
@@ -49,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
         alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
         time_limit_min=args.time_limit,
-        data=DataConfig(k=args.k, block_size=args.block_size, voxel_factor=args.voxel_factor),
+        data=DataConfig(k=args.k, block_size=args.block_size, voxel_factor=args.voxel_factor,
+                        knn_near=args.knn_near, knn_reach=args.knn_reach),
         net=TINY if args.net == "tiny" else NetConfig())
     try:
         summary = train(config, args.data, args.out, val=args.val, init=args.init,

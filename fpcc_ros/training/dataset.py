@@ -34,6 +34,8 @@ class DataConfig:
     max_dropout: float = 0.15
     rotate: bool = True
     remove_floor: bool = True   # as the runtime pipeline does (fpcc_ros.pipeline step 2b)
+    knn_near: int = 0           # dilated neighbourhood (features.neighbour_columns); 0 = plain
+    knn_reach: int = 0
 
 
 @dataclass
@@ -118,7 +120,8 @@ def find_scenes(dirs: Sequence[str | Path]) -> list[Path]:
 
 def blocks_from_points(xyz: np.ndarray, instance: np.ndarray, center_score: np.ndarray,
                        part_radius: float, block_size: int, k: int,
-                       skip_empty: bool = True) -> list[Block]:
+                       skip_empty: bool = True, knn_near: int = 0,
+                       knn_reach: int = 0) -> list[Block]:
     """Cut points into spatial blocks and compute each block's network inputs."""
     blocks = []
     for idx in spatial_blocks(xyz, block_size):
@@ -126,7 +129,7 @@ def blocks_from_points(xyz: np.ndarray, instance: np.ndarray, center_score: np.n
         if skip_empty and not (inst > 0).any():
             continue
         pts = xyz[idx]
-        blocks.append(Block(features=block_features(pts, part_radius), knn=knn_graph(pts, k),
+        blocks.append(Block(features=block_features(pts, part_radius), knn=knn_graph(pts, k, near=knn_near, reach=knn_reach),
                             xyz=pts.astype(np.float32), instance=inst,
                             center_score=center_score[idx].astype(np.float32),
                             part_radius=part_radius, index=idx.astype(np.int64)))
@@ -149,7 +152,8 @@ def scene_blocks(scene: Scene, config: DataConfig, rng: np.random.Generator | No
         if on_floor.any():
             keep, inverse = keep[~on_floor], None
     blocks = blocks_from_points(xyz[keep], scene.instance[keep], scene.center_score[keep],
-                                scene.part_radius, config.block_size, config.k, skip_empty)
+                                scene.part_radius, config.block_size, config.k, skip_empty,
+                                config.knn_near, config.knn_reach)
     return SceneBlocks(rep=keep, inverse=inverse, blocks=blocks)
 
 

@@ -100,6 +100,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
     last = history[-1] if history else {}
     card = ModelCard(
         name=name or out.stem, k=config.data.k, part_radius=float(part_radius),
+        knn_near=config.data.knn_near, knn_reach=config.data.knn_reach,
         block_size=int(block_size or config.data.block_size), voxel_factor=config.data.voxel_factor,
         screening_factor=config.screening_factor, score_threshold=config.score_threshold,
         feature_gate=config.feature_gate,

@@ -172,6 +172,7 @@ class TorchBlockModel:
         from fpcc_ros.model_card import ModelCard
         self.net = net
         self.card = ModelCard(name="validation", k=config.data.k, part_radius=1.0,
+                              knn_near=config.data.knn_near, knn_reach=config.data.knn_reach,
                               block_size=config.data.block_size,
                               voxel_factor=config.data.voxel_factor,
                               embedding_dim=net.config.embedding_dim)
