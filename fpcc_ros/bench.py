@@ -836,12 +836,8 @@ def plot(report: BenchReport, path: Path) -> Path:
     fig.suptitle(f"fpcc bench: {m.get('cpus')} CPUs, onnxruntime {m.get('onnxruntime')}, "
                  f"{report.model.get('name')}" + (" (untrained)" if report.model.get("untrained") else ""),
                  fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    from fpcc_ros.render import save_figure
+    return save_figure(fig, path)
 
 
 # ---------------------------------------------------------------------------------------------
