@@ -41,7 +41,7 @@ class PipelineConfig:
     feature_gate: float = 1.0
     voxel_factor: float = 0.08
     block_size: int = 4096
-    block_halo: float = 1.0   # context around each block, in part radii
+    block_halo: float = 0.5   # context around each block, in part radii (0.5: as accurate as 1.0 on our validation scenes, 25% faster)
     remove_floor: bool = True  # drop the dominant plane (floor around the tote) before the net
     max_points: int = 400_000  # guard: coarser voxels beyond this many network points (> VGA)
     block_split: str = "halving"  # "halving" (features.spatial_blocks, as in training) or
