@@ -7,6 +7,7 @@ summary and writes a PNG per frame.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -52,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     if args.part_radius is not None:
         ros_args += ["-p", f"part_radius:={args.part_radius}"]
     env = isolated_ros_env()
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):  # the player joins the node
+        os.environ[key] = env[key]
     print(f"starting the segmenter node (ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}), "
           f"{len(clouds)} frames from {args.bag}")
     rclpy.init()
