@@ -41,7 +41,9 @@ def test_30hz_vga_clouds_never_queue_and_memory_stays_flat(tmp_path):
     assert outputs >= 3 and "0 out of stamp order" in out and "0 duplicates" in out
     assert "0 incomplete" in out and "0 unknown stamps" in out
     # frames are processed newest-first: an output is never more than ~2 periods old
-    assert over == 0 and periods <= 2.5, out
+    # over: outputs older than 2 periods + 0.25 s (transport of a 5 MB cloud); with a fast test
+    # model a period is ~40 ms, so the plain ratio also counts DDS transfer time
+    assert over == 0 and periods <= 3.5, out
     assert outputs >= 0.5 * SECONDS * 1000 / period_ms / 2  # the worker was busy, not idle
     assert growth < 20.0, out
     assert "node exit code            0" in out and "'frame failed' warnings: 0" in out
