@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from fpcc_ros.clustering import assign_to_center_points, assign_to_centers
+from fpcc_ros.clustering import assign_to_center_points
 from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane,
                                knn_graphs_in_boxes, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
@@ -126,14 +126,6 @@ class SegmentationResult:
     @property
     def num_instances(self) -> int:
         return len(self.centroids)
-
-
-def cluster_points(xyz: np.ndarray, embedding: np.ndarray, center_score: np.ndarray,
-                   config: PipelineConfig) -> np.ndarray:
-    """Steps 5-6 on the network's points: NMS centers, then nearest-center labels 0..K."""
-    centers = nms_centers(xyz, center_score, config.score_threshold,
-                          config.screening_factor * config.part_radius)
-    return assign_to_centers(xyz, embedding, centers, config.part_radius, config.feature_gate)
 
 
 @dataclass
