@@ -25,6 +25,14 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                        help="onnxruntime execution provider")
 
 
+def positive_int(text: str) -> int:
+    """argparse type for counts (--runs, --limit)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
 PROVIDERS = {"cpu": ["CPUExecutionProvider"],
              "cuda": ["CUDAExecutionProvider", "CPUExecutionProvider"]}
 

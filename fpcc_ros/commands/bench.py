@@ -11,7 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fpcc_ros.commands._pipeline_options import add_pipeline_arguments, build_pipeline
+from fpcc_ros.commands._pipeline_options import (add_pipeline_arguments, build_pipeline,
+                                                 positive_int)
 
 SCENE_SETS = ("demo", "synth")
 
@@ -33,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="F", help="also time central crops of the 20-part bin with "
                         "these fractions of the image area (latency vs valid points); none: "
                         "--crops with no value")
-    parser.add_argument("--runs", type=_positive_int, default=5,
+    parser.add_argument("--runs", type=positive_int, default=5,
                         help="timed runs per scene after one warm-up run (default: %(default)s)")
     parser.add_argument("--full-res", action="store_true",
                         help="also run every labelled scene once at full resolution (voxel "
@@ -168,10 +169,3 @@ def _scene_sets(text: str) -> list[str]:
         raise argparse.ArgumentTypeError(f"--scenes {text!r}: use a comma-separated subset of "
                                          f"{', '.join(SCENE_SETS)}, or 'none'")
     return names
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} must be >= 1")
-    return value

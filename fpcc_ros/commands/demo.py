@@ -90,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"\n{'frame':>5} {'points':>8} {'valid':>8} {'instances':>9} {'latency ms':>10}")
     for i, rec in enumerate(records):
         out = rec.outputs["segmented_points"]
-        labels, scores = read_points(out)["label"], read_points(out)["center_score"]
+        points = read_points(out)
+        labels, scores = points["label"], points["center_score"]
         xyz = read_xyz(rec.input)
         valid = int(np.isfinite(xyz).all(axis=1).sum())
         print(f"{i:>5} {len(xyz):>8} {valid:>8} {len(rec.outputs['instances'].poses):>9} "

@@ -10,7 +10,8 @@ import json
 import sys
 from pathlib import Path
 
-from fpcc_ros.commands._pipeline_options import add_pipeline_arguments, build_pipeline
+from fpcc_ros.commands._pipeline_options import (add_pipeline_arguments, build_pipeline,
+                                                 positive_int)
 
 SEGMENT_OUTPUT_SUFFIX = "_segmented.npz"  # written by `fpcc segment`: predictions, not ground truth
 
@@ -20,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="directory of scene NPZ files with ground truth (DESIGN.md §4)")
     parser.add_argument("--out", type=Path, default=None, metavar="REPORT.json",
                         help="JSON report (default: DIR/eval_<model stem>.json)")
-    parser.add_argument("--limit", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--limit", type=positive_int, default=None, metavar="N",
                         help="evaluate only the first N scenes (sorted by name)")
     parser.add_argument("--protocol", choices=["visible", "paper", "both"], default="both",
                         help="visible: GT instances under 300 points at 640x480 removed; paper: "
@@ -79,10 +80,3 @@ def run(args: argparse.Namespace) -> int:
         return fail(f"cannot write the report to {out} ({exc}); choose another --out")
     print(f"wrote {out}")
     return 0
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
