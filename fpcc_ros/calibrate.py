@@ -1,9 +1,12 @@
-"""Choose a model's clustering defaults (score threshold θ, feature gate) on validation scenes.
+"""Choose a model's clustering defaults (score threshold θ, feature gate, screening factor γ)
+on validation scenes.
 
 θ and the gate are properties of a trained network (how high its center scores reach, how tight
 its embeddings are), so they belong in its card, chosen on the trainer's own validation scenes
-(never on evaluation data). The network runs once per scene; every (θ, gate) pair then reuses
-its outputs, since neither changes what the network sees.
+(never on evaluation data); γ depends on the part's shape (an elongated part's d_max is far
+larger than the gap between parallel neighbours; the paper's ablation picks 0.8-1.0). The network
+runs once per scene; every (θ, gate, γ) combination then reuses its outputs, since none changes
+what the network sees.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ class CalibrationRow:
     score_threshold: float
     feature_gate: float
     counts: InstanceCounts
+    screening_factor: float = 1.0
 
     @property
     def f1(self) -> float:
@@ -44,8 +48,12 @@ class CalibrationRow:
 
 
 def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
-              gates: list[float], progress=None) -> list[CalibrationRow]:
-    rows = {(t, g): InstanceCounts() for t, g in itertools.product(thresholds, gates)}
+              gates: list[float], progress=None,
+              screening_factors: list[float] | None = None) -> list[CalibrationRow]:
+    """Instance counts (visible protocol) for every combination, summed over ``scenes``;
+    ``screening_factors`` None keeps the card's γ."""
+    factors = screening_factors or [model.card.screening_factor]
+    rows = {key: InstanceCounts() for key in itertools.product(thresholds, gates, factors)}
     memo = _MemoModel(model)
     for path in (progress(scenes) if progress else scenes):
         scene = np.load(path)
@@ -55,9 +63,9 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         limit = visible_threshold(scene["points"].shape[0] * scene["points"].shape[1]) \
             if scene["points"].ndim == 3 else 300
         memo._cache.clear()
-        for t, g in rows:
+        for t, g, f in rows:
             cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
-                                           score_threshold=t, feature_gate=g)
+                                           score_threshold=t, feature_gate=g, screening_factor=f)
             labels = Pipeline(memo, cfg).segment(xyz).labels  # type: ignore[arg-type]
-            rows[(t, g)] += scene_counts(labels[finite], gt[finite], "visible", limit)
-    return [CalibrationRow(t, g, c) for (t, g), c in rows.items()]
+            rows[(t, g, f)] += scene_counts(labels[finite], gt[finite], "visible", limit)
+    return [CalibrationRow(t, g, c, f) for (t, g, f), c in rows.items()]

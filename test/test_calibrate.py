@@ -1,0 +1,49 @@
+"""calibrate(): every (θ, gate, γ) combination is scored on the same scenes with its own settings."""
+from pathlib import Path
+
+import numpy as np
+
+import fpcc_ros.pipeline as pipeline_module
+from fpcc_ros.calibrate import calibrate
+from fpcc_ros.onnx_model import FpccModel
+
+from test_evaluation import FLOOR, patch, write_scene
+
+TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
+# three parts of 21 x 21 points: above the visible protocol's 300-point floor for unorganized scenes
+ROW = [patch(0.0, 0.05, 0.98, step=0.0025, size=0.05), patch(0.065, 0.05, 0.97, step=0.0025, size=0.05),
+       patch(0.13, 0.05, 0.985, step=0.0025, size=0.05)]
+
+
+def test_every_combination_is_scored_on_all_scenes_with_its_own_settings(tmp_path, monkeypatch):
+    scenes = [tmp_path / "a.npz", tmp_path / "b.npz"]
+    for path in scenes:
+        write_scene(path, ROW, extra=FLOOR, part_radius=0.05)
+    seen: list[tuple[float, float]] = []  # (score threshold, screening radius) per NMS call
+    real_nms = pipeline_module.nms_centers
+
+    def recording_nms(xyz, score, threshold, radius):
+        seen.append((threshold, round(radius, 6)))  # part_radius is stored as float32
+        return real_nms(xyz, score, threshold, radius)
+
+    monkeypatch.setattr(pipeline_module, "nms_centers", recording_nms)
+    rows = calibrate(FpccModel(TINY_MODEL, threads=1), scenes, [0.3, 0.999], [1.0],
+                     screening_factors=[0.5, 1.0])
+
+    assert sorted((r.score_threshold, r.screening_factor) for r in rows) == \
+        [(0.3, 0.5), (0.3, 1.0), (0.999, 0.5), (0.999, 1.0)]
+    # each combination ran once per scene with its own θ and γ * part_radius
+    assert sorted(set(seen)) == [(0.3, 0.025), (0.3, 0.05), (0.999, 0.025), (0.999, 0.05)]
+    assert len(seen) == 4 * len(scenes)
+    # the same scenes under every setting: three ground-truth parts per scene
+    assert all(r.counts.ground_truths == 3 * len(scenes) for r in rows)
+    assert all(0.0 <= r.f1 <= 1.0 for r in rows)
+
+
+def test_without_screening_factors_the_cards_factor_is_kept(tmp_path):
+    scene = tmp_path / "a.npz"
+    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
+    model = FpccModel(TINY_MODEL, threads=1)
+    rows = calibrate(model, [scene], [0.5], [1.0, 2.0])
+    assert [r.screening_factor for r in rows] == [model.card.screening_factor] * 2
+    assert sorted(r.feature_gate for r in rows) == [1.0, 2.0]
