@@ -200,3 +200,34 @@ def test_cosine_learning_rate():
     assert train_mod.lr_at(cfg, 0) == pytest.approx(1e-3)
     assert train_mod.lr_at(cfg, 5) == pytest.approx(0.5 * (1e-3 + 1e-5))
     assert train_mod.lr_at(cfg, 10) == pytest.approx(1e-5)
+
+
+def test_fine_tuning_keeps_the_init_models_graph_unless_told_otherwise(scenes, tmp_path, capsys):
+    dilated = DataConfig(k=8, block_size=256, voxel_factor=0.15, remove_floor=False,
+                         knn_near=4, knn_reach=12)
+    train(TrainConfig(epochs=1, batch=4, data=dilated, net=TINY, threads=1), [scenes / "val"],
+          tmp_path / "base", progress=False)
+    base = tmp_path / "base" / "checkpoint_last.pt"
+
+    # `fpcc train --init` with no graph options: the run is built like the init model's
+    assert fpcc(["train", "--data", str(scenes / "val"), "--out", str(tmp_path / "tuned"),
+                 "--epochs", "1", "--init", str(base), "--net", "tiny", "--threads", "1"]) == 0
+    tuned = load_checkpoint(tmp_path / "tuned" / "checkpoint_last.pt")["config"]["data"]
+    assert {f: tuned[f] for f in train_mod.GRAPH_FIELDS} == \
+        {"k": 8, "block_size": 256, "voxel_factor": 0.15, "knn_near": 4, "knn_reach": 12}
+    capsys.readouterr()
+
+    # an explicit setting wins, with a warning when it departs from the init weights
+    changed = train_mod.data_config_for(base, k=10, knn_reach=None)
+    assert (changed.k, changed.knn_reach, changed.block_size) == (10, 12, 256)
+    assert "--k 10 differs from the --init weights' 8" in capsys.readouterr().err
+    # no init: the shipped model's settings
+    fresh = train_mod.data_config_for(None)
+    assert (fresh.k, fresh.block_size, fresh.voxel_factor, fresh.knn_near, fresh.knn_reach) == \
+        (16, 2048, 0.1, 8, 48)
+
+
+def test_checkpoints_from_before_the_dilated_graph_read_as_plain_knn():
+    old = TrainConfig.from_dict({"epochs": 3, "data": {"k": 16, "block_size": 4096,
+                                                       "voxel_factor": 0.08, "unknown_key": 1}})
+    assert (old.data.knn_near, old.data.knn_reach, old.data.block_size) == (0, 0, 4096)

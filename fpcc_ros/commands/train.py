@@ -25,15 +25,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--weight-decay", type=float, default=1e-4)
     parser.add_argument("--batch", type=int, default=4)
-    parser.add_argument("--block-size", type=int, default=4096,
-                        help="points per block (smaller trains faster; the card records it)")
-    parser.add_argument("--k", type=int, default=16, help="neighbours per point in the kNN graph")
-    parser.add_argument("--knn-near", type=int, default=0,
+    inherited = " (default: the --init model's, else the shipped model's {})"
+    parser.add_argument("--block-size", type=int, default=None,
+                        help="points per block; the card records it" + inherited.format(2048))
+    parser.add_argument("--k", type=int, default=None,
+                        help="neighbours per point in the kNN graph" + inherited.format(16))
+    parser.add_argument("--knn-near", type=int, default=None,
                         help="dilated neighbourhood: this many nearest, the rest spread over "
-                        "--knn-reach nearest (0 = plain kNN)")
-    parser.add_argument("--knn-reach", type=int, default=0)
-    parser.add_argument("--voxel-factor", type=float, default=0.08,
-                        help="voxel size as a fraction of the part radius")
+                        "--knn-reach nearest (0 = plain kNN)" + inherited.format(8))
+    parser.add_argument("--knn-reach", type=int, default=None, help=inherited.format(48).strip())
+    parser.add_argument("--voxel-factor", type=float, default=None,
+                        help="voxel size as a fraction of the part radius" + inherited.format(0.1))
     parser.add_argument("--alpha", type=float, default=3.0, help="weight of the center-score loss")
     parser.add_argument("--no-augment", action="store_true",
                         help="no rotation / scale / voxel-size / dropout augmentation")
@@ -46,17 +48,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fpcc_ros.training.dataset import DataConfig
-    from fpcc_ros.training.train import TrainConfig, train
+    from fpcc_ros.training.train import TrainConfig, data_config_for, train
 
-    config = TrainConfig(
-        epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
-        alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
-        time_limit_min=args.time_limit,
-        data=DataConfig(k=args.k, block_size=args.block_size, voxel_factor=args.voxel_factor,
-                        knn_near=args.knn_near, knn_reach=args.knn_reach),
-        net=TINY if args.net == "tiny" else NetConfig())
     try:
+        data = data_config_for(None if args.resume else args.init, k=args.k,
+                               block_size=args.block_size, voxel_factor=args.voxel_factor,
+                               knn_near=args.knn_near, knn_reach=args.knn_reach)
+        config = TrainConfig(
+            epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
+            alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
+            time_limit_min=args.time_limit, data=data,
+            net=TINY if args.net == "tiny" else NetConfig())
         summary = train(config, args.data, args.out, val=args.val, init=args.init,
                         resume=args.resume, command=["fpcc", *sys.argv[1:]])
     except (FileNotFoundError, ValueError) as exc:

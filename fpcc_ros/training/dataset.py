@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -27,15 +27,25 @@ from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_
 @dataclass(frozen=True)
 class DataConfig:
     k: int = 16
-    block_size: int = 4096
-    voxel_factor: float = 0.08
+    block_size: int = 2048
+    voxel_factor: float = 0.1
     voxel_jitter: tuple[float, float] = (0.8, 1.25)
     scale_jitter: tuple[float, float] = (0.9, 1.1)
     max_dropout: float = 0.15
     rotate: bool = True
     remove_floor: bool = True   # as the runtime pipeline does (fpcc_ros.pipeline step 2b)
-    knn_near: int = 0           # dilated neighbourhood (features.neighbour_columns); 0 = plain
-    knn_reach: int = 0
+    knn_near: int = 8           # dilated neighbourhood (features.neighbour_columns); 0 = plain
+    knn_reach: int = 48
+
+    @classmethod
+    def from_dict(cls, body: dict[str, Any]) -> "DataConfig":
+        """From a checkpoint's saved settings. Runs saved before the dilated graph existed used
+        plain kNN, whatever today's defaults are; keys this version does not know are ignored."""
+        known = set(cls.__dataclass_fields__)
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in body.items() if k in known}
+        values.setdefault("knn_near", 0)
+        values.setdefault("knn_reach", 0)
+        return cls(**values)
 
 
 @dataclass

@@ -67,10 +67,10 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, body: dict[str, Any]) -> "TrainConfig":
         body = dict(body)
-        data = {k: tuple(v) if isinstance(v, list) else v for k, v in body.pop("data", {}).items()}
+        data = DataConfig.from_dict(body.pop("data", {}))
         net = NetConfig.from_dict(body.pop("net", {}))
         known = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in body.items() if k in known}, data=DataConfig(**data), net=net)
+        return cls(**{k: v for k, v in body.items() if k in known}, data=data, net=net)
 
 
 @dataclass
@@ -129,6 +129,31 @@ def resolve_init(init: str | Path) -> Path | None:
                                     "writes them, ONNX weights cannot be trained further")
         return pt
     return path
+
+
+# What the network's inputs are built with: fine-tuning must keep them, or the weights meet
+# neighbourhoods and densities they were never trained on
+GRAPH_FIELDS = ("k", "block_size", "voxel_factor", "knn_near", "knn_reach")
+
+
+def data_config_for(init: str | Path | None, **explicit: Any) -> DataConfig:
+    """The data settings of a run: the ``explicit`` ones (None = not given), the rest from the
+    ``init`` weights' training run when there are any, else :class:`DataConfig`'s defaults (the
+    shipped model's). An explicit graph setting that differs from the init weights' is a warning,
+    not an error: retraining to a new graph from old weights is legitimate, just slower."""
+    base = DataConfig()
+    init_path = resolve_init(init) if init is not None else None
+    if init_path is not None:
+        saved = load_checkpoint(init_path).get("config", {}).get("data")
+        if saved:
+            base = DataConfig.from_dict(saved)
+    given = {name: value for name, value in explicit.items() if value is not None}
+    for name in GRAPH_FIELDS:
+        if init_path is not None and name in given and given[name] != getattr(base, name):
+            print(f"fpcc train: --{name.replace('_', '-')} {given[name]} differs from the --init "
+                  f"weights' {getattr(base, name)}; the network will have to relearn its inputs "
+                  f"(leave it out to keep the init's)", file=sys.stderr)
+    return replace(base, **given)
 
 
 def _plain(value: Any) -> Any:
