@@ -157,43 +157,37 @@ def knn_graph(xyz: np.ndarray, k: int, workers: int = 1, near: int = 0,
     return idx
 
 
-def knn_graphs_in_boxes(xyz: np.ndarray, blocks: list[np.ndarray], boxes: list[tuple],
-                        k: int, workers: int = 1) -> list[np.ndarray]:
-    """``knn_graph(xyz[b], k)`` for every block ``b`` = the points of ``xyz`` inside its box,
-    from one KD-tree over all the points instead of one per block.
+def block_knn_graphs(xyz: np.ndarray, blocks: list[np.ndarray], k: int,
+                     workers: int = 1) -> list[np.ndarray]:
+    """``knn_graph(xyz[b], k)`` for every block ``b`` (any subset of rows, e.g. a core plus its
+    halo), from one KD-tree over all the points instead of one per block.
 
-    A point whose k-th nearest neighbour in ``xyz`` is closer than its box's faces (and not tied
-    with the (k+1)-th) has the same k nearest neighbours in its block as in the whole cloud; only
-    the rest (points near a face) are queried in the block's own tree, as knn_graph does. Rows
-    hold the same neighbours at the same distances as knn_graph's; neighbours at exactly equal
-    distances may come in another order. The network takes a max over each row, so its output
-    does not depend on that order. With halos around blocks every point lies in ~2.5 blocks:
-    this queries each point about once.
-
-    ``blocks[i]``: indices into ``xyz`` of all points inside ``boxes[i] = (lo, hi)`` (closed).
+    A point whose k nearest neighbours in ``xyz`` all lie in its block (and whose k-th is not
+    tied with the (k+1)-th) has the same k nearest neighbours in the block as in the whole cloud:
+    the block is a subset holding all of them. Only the rest (points near a block's edge with
+    neighbours beyond it) are queried in the block's own tree, as knn_graph does. Rows hold the
+    same neighbours at the same distances as knn_graph's; neighbours at exactly equal distances
+    may come in another order. The network takes a max over each row, so its output does not
+    depend on that order. With halos around blocks every point lies in ~2.5 blocks: this queries
+    each point about once (measured on a 40-part bin: 4,763 of 18,483 rows re-queried; the
+    earlier test, "the k-th neighbour is nearer than the box's faces", re-queried 5,873).
     """
     n = len(xyz)
     graphs: list[np.ndarray] = []
     if n <= k:
         return [knn_graph(xyz[b], k, workers) for b in blocks]
     dist, idx = cKDTree(xyz).query(xyz, k=k + 1, workers=workers)
-    kth = dist[:, k - 1]
-    unique = kth < dist[:, k]                       # no tie at the k-th neighbour
+    unique = dist[:, k - 1] < dist[:, k]            # no tie at the k-th neighbour
     local = np.full(n, -1, dtype=np.int64)
-    for block, (lo, hi) in zip(blocks, boxes):
+    for block in blocks:
         m = len(block)
         if m <= k:
             graphs.append(knn_graph(xyz[block], k, workers))
             continue
         pts = xyz[block]
-        margin = np.minimum(pts - lo, hi - pts).min(axis=1)   # distance to the nearest face
-        inner = unique[block] & (margin >= kth[block])
         local[block] = np.arange(m)
-        graph = np.empty((m, k), dtype=np.int64)
-        rows = np.flatnonzero(inner)
-        graph[rows] = local[idx[block[rows], :k]]
-        # a neighbour outside the block means the box held points the block lacks: query those
-        inner[rows[(graph[rows] < 0).any(axis=1)]] = False
+        graph = local[idx[block, :k]]               # -1 where a neighbour is outside the block
+        inner = unique[block] & (graph >= 0).all(axis=1)
         rest = np.flatnonzero(~inner)
         if len(rest):
             _, near = cKDTree(pts).query(pts[rest], k=k, workers=workers)

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from fpcc_ros.clustering import assign_to_center_points
-from fpcc_ros.features import (balanced_blocks, block_features, dominant_plane,
-                               knn_graphs_in_boxes, plane_tolerance, select_neighbours, spatial_blocks,
+from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs,
+                               dominant_plane, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
@@ -230,19 +230,18 @@ class Pipeline:
             return []
         pts = xyz[candidates]
         halo = cfg.block_halo * cfg.part_radius
-        cores, exts, boxes = [], [], []
+        cores, exts = [], []
         for core in _blocks(pts, cfg):
             lo, hi = pts[core].min(axis=0) - halo, pts[core].max(axis=0) + halo
             inside = ((pts >= lo) & (pts <= hi)).all(axis=1)
             inside[core] = False
             cores.append(core)
             exts.append(np.concatenate([core, np.flatnonzero(inside)]))
-            boxes.append((lo, hi))
         # one KD-tree over all candidates: each point is queried about once, not once per halo
         card = self.model.card
         width = max(card.k, card.knn_reach)
         knns = [select_neighbours(g, card.k, card.knn_near, width) for g in
-                knn_graphs_in_boxes(pts, exts, boxes, width, self._knn_workers)]
+                block_knn_graphs(pts, exts, width, self._knn_workers)]
         return [(candidates[core], candidates[ext], block_features(pts[ext], cfg.part_radius)[None],
                  knn[None]) for core, ext, knn in zip(cores, exts, knns)]
 

@@ -338,23 +338,22 @@ def test_pipeline_block_split_is_validated():
 def _halo_blocks(xyz, block, halo):
     from fpcc_ros.features import spatial_blocks
 
-    exts, boxes = [], []
+    exts = []
     for core in spatial_blocks(xyz, block):
         lo, hi = xyz[core].min(axis=0) - halo, xyz[core].max(axis=0) + halo
         inside = ((xyz >= lo) & (xyz <= hi)).all(axis=1)
         inside[core] = False
         exts.append(np.concatenate([core, np.flatnonzero(inside)]))
-        boxes.append((lo, hi))
-    return exts, boxes
+    return exts
 
 
 @pytest.mark.parametrize("name", ["camera", "quantized", "flat"])
-def test_knn_in_boxes_gives_knn_graphs_neighbour_sets(name):
-    from fpcc_ros.features import knn_graph, knn_graphs_in_boxes
+def test_block_knn_gives_knn_graphs_neighbour_sets(name):
+    from fpcc_ros.features import block_knn_graphs, knn_graph
 
     xyz = _clouds()[name][:6000]
-    exts, boxes = _halo_blocks(xyz, 700, halo=0.1)
-    got = knn_graphs_in_boxes(xyz, exts, boxes, 16, workers=2)
+    exts = _halo_blocks(xyz, 700, halo=0.1)
+    got = block_knn_graphs(xyz, exts, 16, workers=2)
     assert len(got) == len(exts) > 4
     for ext, g in zip(exts, got):
         want = knn_graph(xyz[ext], 16)
@@ -368,21 +367,28 @@ def test_knn_in_boxes_gives_knn_graphs_neighbour_sets(name):
             assert (g[:, 0] == np.arange(len(ext))).all()   # itself first
 
 
-def test_knn_in_boxes_small_blocks_fall_back_to_knn_graph():
-    from fpcc_ros.features import knn_graph, knn_graphs_in_boxes
+def test_block_knn_small_blocks_fall_back_to_knn_graph():
+    from fpcc_ros.features import block_knn_graphs, knn_graph
 
     xyz = _clouds()["camera"][:40]
     order = np.argsort(xyz[:, 0])
-    exts = [order[:5], order[5:]]           # split along x: each box holds only its block
-    boxes = [(xyz[e].min(axis=0), xyz[e].max(axis=0)) for e in exts]
-    got = knn_graphs_in_boxes(xyz, exts, boxes, 16)
+    exts = [order[:5], order[5:]]           # split along x
+    got = block_knn_graphs(xyz, exts, 16)
     np.testing.assert_array_equal(got[0], knn_graph(xyz[exts[0]], 16))   # fewer points than k
     np.testing.assert_array_equal(np.sort(got[1], 1), np.sort(knn_graph(xyz[exts[1]], 16), 1))
-    # a block that is not every point of its box: rows reaching outside are queried in the block
-    odd = [np.arange(0, 40, 2)]
-    box = [(xyz.min(axis=0), xyz.max(axis=0))]
-    np.testing.assert_array_equal(np.sort(knn_graphs_in_boxes(xyz, odd, box, 16)[0], 1),
-                                  np.sort(knn_graph(xyz[odd[0]], 16), 1))
+
+
+def test_block_knn_on_scattered_subsets():
+    """Blocks need not be boxes: every other point, or a random third, interleaved with the
+    points they lack -- most rows' global neighbours fall outside and are queried again."""
+    from fpcc_ros.features import block_knn_graphs, knn_graph
+
+    xyz = _clouds()["camera"][:3000]
+    rng = np.random.default_rng(5)
+    blocks = [np.arange(0, 3000, 2), np.sort(rng.choice(3000, 1000, replace=False)),
+              np.arange(3000)]
+    for block, got in zip(blocks, block_knn_graphs(xyz, blocks, 16)):
+        np.testing.assert_array_equal(np.sort(got, 1), np.sort(knn_graph(xyz[block], 16), 1))
 
 
 def test_network_output_does_not_depend_on_neighbour_order():
