@@ -15,6 +15,8 @@ COMMANDS = {
     "synth": ("synth", "generate synthetic bin scenes from a mesh or a built-in part"),
     "train": ("train", "train FPCC-Net on synthetic scenes"),
     "export": ("export", "export a trained checkpoint to ONNX + model card"),
+    "calibrate": ("calibrate", "choose score threshold, feature gate and screening factor on "
+                  "validation scenes; --write stores them in the model card"),
     "eval": ("evaluate", "precision/recall at IoU 0.5, MUCov, MWCov vs a clustering baseline"),
     "render": ("render", "PNG of labels and center scores of a scene or segmented output"),
     "bench": ("bench", "latency per stage, end to end, memory and accuracy"),

@@ -47,3 +47,31 @@ def test_without_screening_factors_the_cards_factor_is_kept(tmp_path):
     rows = calibrate(model, [scene], [0.5], [1.0, 2.0])
     assert [r.screening_factor for r in rows] == [model.card.screening_factor] * 2
     assert sorted(r.feature_gate for r in rows) == [1.0, 2.0]
+
+
+def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
+    import json
+    import shutil
+
+    from fpcc_ros.cli import main as fpcc
+
+    for suffix in (".onnx", ".json"):
+        shutil.copy(TINY_MODEL.with_suffix(suffix), tmp_path / f"m{suffix}")
+    (tmp_path / "val").mkdir()
+    (tmp_path / "empty").mkdir()
+    write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
+    assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
+                 "--thresholds", "0.2", "0.4", "--gates", "1.5", "--screening", "0.7",
+                 "--write"]) == 0
+    card = json.loads((tmp_path / "m.json").read_text())
+    chosen = card["metrics"]["calibration"]
+    assert card["score_threshold"] == chosen["score_threshold"] in (0.2, 0.4)
+    assert (card["feature_gate"], card["screening_factor"]) == (1.5, 0.7)
+    assert f"F1 {chosen['f1']:.3f} on 1 scenes" in capsys.readouterr().out
+
+    assert fpcc(["calibrate", str(tmp_path / "missing.onnx"), "--data", str(tmp_path / "val")]) == 2
+    assert "missing.onnx" in capsys.readouterr().err
+    assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "nothing")]) == 2
+    assert "nothing: no such file or folder" in capsys.readouterr().err
+    assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "empty")]) == 2
+    assert "fpcc synth" in capsys.readouterr().err
