@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# The per-part workflow the README promises, end to end, with the settings behind its figures:
+# synth (train + validation) -> fine-tune the shipped model (30 min) -> export -> calibrate on
+# the validation scenes -> eval on separate test scenes (made with seeds never used above).
+#   usage: scripts/per_part_workflow.sh MESH SCALE NAME WORK_DIR [TEST_DIR]
+#   e.g.   scripts/per_part_workflow.sh ../shared/data/meshes/IPAGearShaft.stl 0.5 gear_shaft /work/part
+# Scene folders that already hold a synth.json are kept (generation is deterministic per seed).
+set -euo pipefail
+MESH=${1:?mesh}; SCALE=${2:?scale}; NAME=${3:?name}; WORK=${4:?work dir}; TEST=${5:-}
+PY=${PY:-.venv/bin/python}
+MINUTES=${MINUTES:-30}
+fpcc() { $PY -m fpcc_ros.cli "$@"; }
+synth() {  # OUT SCENES SEED [extra synth options]
+  local out=$1 scenes=$2 seed=$3; shift 3
+  [ -f "$out/synth.json" ] || fpcc synth --mesh "$MESH" --scale "$SCALE" --out "$out" \
+                                         --scenes "$scenes" --seed "$seed" "$@"
+}
+D=$WORK/data/$NAME
+fpcc part-info "$MESH" --scale "$SCALE"
+synth "$D/train" 40 500000
+synth "$D/train2" 60 520000
+synth "$D/val" 4 510000 --parts 30 60
+fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME" \
+           --init default --epochs 20 --time-limit "$MINUTES" --lr 5e-4
+fpcc export "$WORK/runs/$NAME/checkpoint_best.pt" --out "$WORK/models/$NAME.onnx" --name "$NAME"
+fpcc calibrate "$WORK/models/$NAME.onnx" --data "$D/val" --write
+if [ -n "$TEST" ]; then
+  fpcc eval --data "$TEST" --model "$WORK/models/$NAME.onnx" --protocol both \
+            --out "$WORK/eval_$NAME.json"
+fi
