@@ -21,6 +21,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         share("models", "*.onnx"),
         share("models", "*.json"),
+        share("models", "*.pt"),   # torch weights of the shipped model, for `fpcc train --init default`
         share("config"),
         *[(f"share/{PACKAGE}/{d}", glob(f"{d}/*")) for d in sorted(glob("bags/*")) if glob(f"{d}/*")],
     ],

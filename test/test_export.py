@@ -231,3 +231,18 @@ def test_checkpoints_from_before_the_dilated_graph_read_as_plain_knn():
     old = TrainConfig.from_dict({"epochs": 3, "data": {"k": 16, "block_size": 4096,
                                                        "voxel_factor": 0.08, "unknown_key": 1}})
     assert (old.data.knn_near, old.data.knn_reach, old.data.block_size) == (0, 0, 4096)
+
+
+def test_init_default_is_the_shipped_models_weights():
+    from fpcc_ros.onnx_model import default_model_path
+    from fpcc_ros.training.model import NetConfig
+
+    pt = resolve_init("default")
+    assert pt == default_model_path().with_suffix(".pt") and pt.is_file()
+    state = load_checkpoint(pt)
+    card = load_card(card_path_for(default_model_path()))
+    saved = state["config"]["data"]
+    # the weights are the ONNX model's: same widths and the same graph as its card declares
+    assert NetConfig.from_dict(state["net"]).embedding_dim == card.embedding_dim
+    assert (saved["k"], saved["knn_near"], saved["knn_reach"], saved["block_size"]) == \
+        (card.k, card.knn_near, card.knn_reach, card.block_size)

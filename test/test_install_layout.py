@@ -47,6 +47,7 @@ def test_ament_index_marker_and_share(installed):
     assert (installed / "share" / "fpcc_ros" / "package.xml").is_file()
     assert (installed / "share" / "fpcc_ros" / "models" / "fpcc_default.onnx").is_file()
     assert (installed / "share" / "fpcc_ros" / "models" / "fpcc_default.json").is_file()
+    assert (installed / "share" / "fpcc_ros" / "models" / "fpcc_default.pt").is_file()  # --init default
     assert (installed / "share" / "fpcc_ros" / "config" / "fastdds_large_clouds.xml").is_file()
 
 

@@ -24,13 +24,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from fpcc_ros.onnx_model import default_model_path
 from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
     load_scene, scene_blocks
 from fpcc_ros.training.loss import ALPHA, EPS1, EPS2, batch_loss
 from fpcc_ros.training.model import FPCCNet, NetConfig
 
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
-DEFAULT_INIT = Path(__file__).resolve().parents[2] / "models" / "fpcc_default.pt"
 _now = time.monotonic  # the run's clock (tests replace it)
 HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "val_loss", "val_loss_ef",
                   "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
@@ -116,11 +116,15 @@ def model_from_checkpoint(state: dict[str, Any]) -> FPCCNet:
     return model
 
 
-def resolve_init(init: str | Path) -> Path | None:
+def resolve_init(init: str | Path) -> Path:
     """The .pt an ``--init`` names: a .pt itself, the .pt beside an .onnx/.json model, or
-    ``default`` (models/fpcc_default.pt; None when it does not exist yet)."""
+    ``default`` (the shipped model's weights, beside its ONNX in a checkout or an install)."""
     if str(init) == "default":
-        return DEFAULT_INIT if DEFAULT_INIT.is_file() else None
+        pt = default_model_path().with_suffix(".pt")
+        if not pt.is_file():
+            raise FileNotFoundError(f"--init default: the shipped weights {pt} are missing; "
+                                    "reinstall fpcc_ros, or pass --init PATH.pt")
+        return pt
     path = Path(init)
     if path.suffix in (".onnx", ".json"):
         pt = path.with_suffix(".pt")
@@ -327,13 +331,8 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
 
     init_state = None
     if state is None and init is not None:
-        init_path = resolve_init(init)
-        if init_path is None:
-            print(f"--init default: {DEFAULT_INIT} does not exist yet; starting from random weights",
-                  file=sys.stderr)
-        else:
-            init_state = load_checkpoint(init_path)
-            config = replace(config, net=NetConfig.from_dict(init_state.get("net", {})))
+        init_state = load_checkpoint(resolve_init(init))
+        config = replace(config, net=NetConfig.from_dict(init_state.get("net", {})))
     model = FPCCNet(config.net)
     if init_state is not None:
         model.load_state_dict(init_state["model"])
