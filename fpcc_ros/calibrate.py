@@ -34,12 +34,28 @@ class _MemoModel:
         return self._cache[key]
 
 
+class _MemoPipeline(Pipeline):
+    """A Pipeline that reuses the block inputs (blocks, features, kNN) of the scene it last
+    saw: they depend on the points and the voxel size only, not on the settings swept here."""
+
+    def __init__(self, model, config: PipelineConfig, cache: dict):
+        super().__init__(model, config)
+        self._cache = cache
+
+    def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray):
+        key = (xyz.shape, len(candidates), candidates[:64].tobytes(), float(xyz[:64].sum()))
+        if key not in self._cache:
+            self._cache[key] = super()._block_inputs(xyz, candidates)
+        return self._cache[key]
+
+
 @dataclass
 class CalibrationRow:
     score_threshold: float
     feature_gate: float
     counts: InstanceCounts
     screening_factor: float = 1.0
+    center_merge: float = 0.0
 
     @property
     def f1(self) -> float:
@@ -48,13 +64,15 @@ class CalibrationRow:
 
 
 def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
-              gates: list[float], progress=None,
-              screening_factors: list[float] | None = None) -> list[CalibrationRow]:
+              gates: list[float], progress=None, screening_factors: list[float] | None = None,
+              merges: list[float] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, summed over ``scenes``;
-    ``screening_factors`` None keeps the card's γ."""
+    ``screening_factors`` / ``merges`` None keep the card's γ / center_merge."""
     factors = screening_factors or [model.card.screening_factor]
-    rows = {key: InstanceCounts() for key in itertools.product(thresholds, gates, factors)}
+    merges = merges if merges is not None else [model.card.center_merge]
+    rows = {key: InstanceCounts() for key in itertools.product(thresholds, gates, factors, merges)}
     memo = _MemoModel(model)
+    inputs: dict = {}
     for path in (progress(scenes) if progress else scenes):
         scene = np.load(path)
         xyz = scene["points"].reshape(-1, 3)
@@ -63,9 +81,11 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         limit = visible_threshold(scene["points"].shape[0] * scene["points"].shape[1]) \
             if scene["points"].ndim == 3 else 300
         memo._cache.clear()
-        for t, g, f in rows:
+        inputs.clear()
+        for t, g, f, m in rows:
             cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
-                                           score_threshold=t, feature_gate=g, screening_factor=f)
-            labels = Pipeline(memo, cfg).segment(xyz).labels  # type: ignore[arg-type]
-            rows[(t, g, f)] += scene_counts(labels[finite], gt[finite], "visible", limit)
-    return [CalibrationRow(t, g, c, f) for (t, g, f), c in rows.items()]
+                                           score_threshold=t, feature_gate=g, screening_factor=f,
+                                           center_merge=m)
+            labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
+            rows[(t, g, f, m)] += scene_counts(labels[finite], gt[finite], "visible", limit)
+    return [CalibrationRow(t, g, c, f, m) for (t, g, f, m), c in rows.items()]

@@ -110,3 +110,39 @@ def assign_reference(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray
         if np.linalg.norm(xyz[i] - xyz[centers[k]]) <= d_max and feat[k] <= feature_gate:
             labels[i] = k + 1
     return labels
+
+
+def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_max: float,
+                       max_distance: float) -> np.ndarray:
+    """(m, 2) index pairs i < j of centers within 2 d_max of each other in 3D whose embeddings
+    are closer than ``max_distance``: candidates for one part.
+
+    NMS keeps one center per screening sphere, but an elongated part (a shaft: d_max several
+    times its width) fits two centers farther apart than the sphere when the screening radius
+    is small enough not to suppress its parallel neighbours. The network puts points of one
+    instance within eps1 (0.5) of each other and those of other instances within 2 d_max (the
+    valid-distance matrix of the loss) beyond eps2 (1.0), so within 2 d_max the embedding
+    distance tells the two cases apart. Embeddings must come from one network pass.
+    """
+    if len(center_xyz) < 2:
+        return np.zeros((0, 2), np.int64)
+    near = np.linalg.norm(center_xyz[:, None] - center_xyz[None], axis=2) < 2 * d_max
+    alike = np.linalg.norm(center_embedding[:, None] - center_embedding[None], axis=2) < max_distance
+    i, j = np.nonzero(np.triu(near & alike, k=1))
+    return np.stack([i, j], axis=1)
+
+
+def merge_centers(num_centers: int, pairs: np.ndarray) -> np.ndarray:
+    """Group of each center (the lowest-ranked center of its connected set of ``pairs``): the
+    labels of merged centers become one instance. ``pairs`` index centers 0..num_centers-1."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if num_centers == 0 or len(pairs) == 0:
+        return np.arange(num_centers)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(num_centers, num_centers))
+    _, component = connected_components(graph, directed=False)
+    first = np.full(component.max() + 1, num_centers)
+    np.minimum.at(first, component, np.arange(num_centers))
+    return first[component]

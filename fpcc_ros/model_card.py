@@ -31,6 +31,7 @@ class ModelCard:
     screening_factor: float = 1.0
     score_threshold: float = 0.6
     feature_gate: float = 1.0
+    center_merge: float = 0.0   # merge centers within d_max closer than this in embedding space
     embedding_dim: int = EMBEDDING_DIM
     knn_near: int = 0    # 0 = plain kNN; else the dilated neighbourhood of features.neighbour_columns
     knn_reach: int = 0
@@ -122,6 +123,8 @@ def _check_values(card: ModelCard, path: Path) -> None:
         ("score_threshold", card.score_threshold,
          _number(card.score_threshold) and 0 <= card.score_threshold < 1, "in [0, 1)"),
         ("feature_gate", card.feature_gate, _positive(card.feature_gate), "> 0"),
+        ("center_merge", card.center_merge,
+         _number(card.center_merge) and 0 <= card.center_merge <= 10, "between 0 (off) and 10"),
         ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
          f"{list(FEATURE_NAMES)} (this runtime's features)"),
     ]

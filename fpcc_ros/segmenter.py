@@ -46,7 +46,7 @@ INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
-                   "roi_max", "voxel_size", "feature_gate")
+                   "roi_max", "voxel_size", "feature_gate", "center_merge")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -99,6 +99,10 @@ PARAMS = (
     _Param("feature_gate", ParameterType.PARAMETER_DOUBLE,
            "Points farther than this from every nearby center in embedding space get no "
            "instance (rejects tote and floor). Default: the model card's.", 0.01, 100.0),
+    _Param("center_merge", ParameterType.PARAMETER_DOUBLE,
+           "Two centers within 2 part_radius whose embeddings are closer than this are one part "
+           "(lets a small screening_factor separate parallel elongated parts without splitting "
+           "each). 0 = off. Default: the model card's.", 0.0, 10.0),
     _Param("threads", ParameterType.PARAMETER_INTEGER,
            "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
@@ -178,7 +182,8 @@ class SegmenterNode(Node):
             "screening_factor": card.screening_factor if card else 1.0,
             "score_threshold": card.score_threshold if card else 0.6,
             "min_points": PipelineConfig.min_points, "voxel_size": AUTO_VOXEL,
-            "feature_gate": card.feature_gate if card else 1.0, "threads": 0, "max_input_age": 0.0,
+            "feature_gate": card.feature_gate if card else 1.0,
+            "center_merge": card.center_merge if card else 0.0, "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:
             if p.kind == ParameterType.PARAMETER_DOUBLE_ARRAY:

@@ -21,7 +21,7 @@ synth "$D/train" 40 500000
 synth "$D/train2" 60 520000
 synth "$D/val" 4 510000 --parts 30 60
 fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME" \
-           --init default --epochs 15 --time-limit "$MINUTES" --lr 5e-4
+           --init default --epochs 30 --time-limit "$MINUTES" --lr 5e-4
 fpcc export "$WORK/runs/$NAME/checkpoint_best.pt" --out "$WORK/models/$NAME.onnx" --name "$NAME"
 fpcc calibrate "$WORK/models/$NAME.onnx" --data "$D/val" --write
 if [ -n "$TEST" ]; then

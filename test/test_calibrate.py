@@ -27,7 +27,7 @@ def test_every_combination_is_scored_on_all_scenes_with_its_own_settings(tmp_pat
         return real_nms(xyz, score, threshold, radius)
 
     monkeypatch.setattr(pipeline_module, "nms_centers", recording_nms)
-    rows = calibrate(FpccModel(TINY_MODEL, threads=1), scenes, [0.3, 0.999], [1.0],
+    rows = calibrate(FpccModel(TINY_MODEL, threads=1), scenes, [0.3, 0.999], [1.0], merges=[0.0],
                      screening_factors=[0.5, 1.0])
 
     assert sorted((r.score_threshold, r.screening_factor) for r in rows) == \
@@ -62,11 +62,11 @@ def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
     write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
     assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
                  "--thresholds", "0.2", "0.4", "--gates", "1.5", "--screening", "0.7",
-                 "--write"]) == 0
+                 "--merges", "0.25", "--write"]) == 0
     card = json.loads((tmp_path / "m.json").read_text())
     chosen = card["metrics"]["calibration"]
     assert card["score_threshold"] == chosen["score_threshold"] in (0.2, 0.4)
-    assert (card["feature_gate"], card["screening_factor"]) == (1.5, 0.7)
+    assert (card["feature_gate"], card["screening_factor"], card["center_merge"]) == (1.5, 0.7, 0.25)
     assert f"F1 {chosen['f1']:.3f} on 1 scenes" in capsys.readouterr().out
 
     assert fpcc(["calibrate", str(tmp_path / "missing.onnx"), "--data", str(tmp_path / "val")]) == 2
@@ -75,3 +75,30 @@ def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
     assert "nothing: no such file or folder" in capsys.readouterr().err
     assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "empty")]) == 2
     assert "fpcc synth" in capsys.readouterr().err
+
+
+def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
+    """calibrate() reuses each scene's network outputs and block inputs across settings; the
+    counts must be those of a fresh Pipeline per setting."""
+    from fpcc_ros.metrics import scene_counts
+    from fpcc_ros.pipeline import Pipeline, PipelineConfig
+
+    scenes = []
+    for i, parts in enumerate((ROW, ROW[1:], [ROW[0] + [0, 0, 0.01], ROW[2]])):
+        scenes.append(tmp_path / f"s{i}.npz")
+        write_scene(scenes[-1], parts, extra=FLOOR, part_radius=0.05)
+    model = FpccModel(TINY_MODEL, threads=1)
+    rows = calibrate(model, scenes, [0.2, 0.5], [1.0, 3.0], screening_factors=[0.5],
+                     merges=[0.0, 1.0])
+    for row in rows:
+        want = None
+        for path in scenes:
+            scene = np.load(path)
+            cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
+                                           score_threshold=row.score_threshold,
+                                           feature_gate=row.feature_gate, screening_factor=0.5,
+                                           center_merge=row.center_merge)
+            labels = Pipeline(model, cfg).segment(scene["points"]).labels
+            counts = scene_counts(labels, scene["instance"], "visible", 300)
+            want = counts if want is None else want + counts
+        assert row.counts == want, (row.score_threshold, row.feature_gate, row.center_merge)

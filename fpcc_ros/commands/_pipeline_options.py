@@ -18,6 +18,8 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--voxel-size", type=float, default=None,
                        help="m; 0 = off (full resolution), -1 = auto")
     group.add_argument("--feature-gate", type=float, default=None)
+    group.add_argument("--center-merge", type=float, default=None,
+                       help="merge centers within d_max closer than this in embedding space (0 off)")
     group.add_argument("--roi-min", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--roi-max", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0 = all)")
@@ -39,7 +41,7 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
-             "feature_gate", "roi_min", "roi_max")
+             "feature_gate", "center_merge", "roi_min", "roi_max")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

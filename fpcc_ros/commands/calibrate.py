@@ -1,4 +1,5 @@
-"""`fpcc calibrate`: choose a model's score threshold, feature gate and screening factor on
+"""`fpcc calibrate`: choose a model's score threshold, feature gate, screening factor and
+center merge on
 validation scenes (never on evaluation data) and, with --write, store them in its card."""
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gates", type=float, nargs="+", default=[0.75, 1.0, 1.5, 3.0])
     parser.add_argument("--screening", type=float, nargs="+", default=[0.6, 0.8, 1.0],
                         help="screening factors γ to try (the paper's ablation: 0.8-1.0)")
+    parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5, 1.0],
+                        help="center_merge values to try (0 = off)")
     parser.add_argument("--limit", type=int, default=0, help="use only the first N scenes")
     parser.add_argument("--write", action="store_true", help="put the best values in the card")
 
@@ -46,24 +49,26 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc calibrate: {exc}", file=sys.stderr)
         return 2
     rows = calibrate(model, scenes, args.thresholds, args.gates, progress=tqdm,
-                     screening_factors=args.screening)
+                     screening_factors=args.screening, merges=args.merges)
     rows.sort(key=lambda r: -r.f1)
-    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'P':>6} {'R':>6} {'F1':>6}")
+    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'P':>6} {'R':>6} {'F1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
-              f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f}")
+              f"{r.center_merge:>6.2f} {r.counts.precision:>6.3f} {r.counts.recall:>6.3f} "
+              f"{r.f1:>6.3f}")
     best = rows[0]
     print(f"best: score_threshold {best.score_threshold}, feature_gate {best.feature_gate}, "
-          f"screening_factor {best.screening_factor} (F1 {best.f1:.3f} on {len(scenes)} scenes)")
+          f"screening_factor {best.screening_factor}, center_merge {best.center_merge} "
+          f"(F1 {best.f1:.3f} on {len(scenes)} scenes)")
     if args.write:
         path = card_path_for(args.model)
         card = json.loads(path.read_text())
         card["score_threshold"], card["feature_gate"] = best.score_threshold, best.feature_gate
-        card["screening_factor"] = best.screening_factor
+        card["screening_factor"], card["center_merge"] = best.screening_factor, best.center_merge
         card.setdefault("metrics", {})["calibration"] = {
             "scenes": [str(s) for s in scenes], "protocol": "visible",
             "score_threshold": best.score_threshold, "feature_gate": best.feature_gate,
-            "screening_factor": best.screening_factor,
+            "screening_factor": best.screening_factor, "center_merge": best.center_merge,
             "precision": best.counts.precision, "recall": best.counts.recall, "f1": best.f1}
         path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"wrote {path}")
