@@ -14,6 +14,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -171,10 +172,16 @@ class SegmenterNode(Node):
 
     # ---- parameters -------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
+        """Card-derived defaults (part_radius, θ, γ, gate, merge) come from the card of the model
+        the node starts with (`-p model:=...`), so a per-part model runs with its own
+        calibration unless a parameter says otherwise."""
         from fpcc_ros.model_card import card_path_for, load_card, ModelCardError
+        model_param = next(p for p in PARAMS if p.name == "model")
+        start_model = self.declare_parameter("model", "", _describe(model_param)).value
         try:
-            card = load_card(card_path_for(default_model_path()))
-        except ModelCardError:
+            card = load_card(card_path_for(Path(start_model) if start_model
+                                           else default_model_path()))
+        except (ModelCardError, OSError):
             card = None  # reported when the model loads
         defaults: dict[str, Any] = {
             "model": "", "providers": ["CPUExecutionProvider"],
@@ -186,6 +193,8 @@ class SegmenterNode(Node):
             "center_merge": card.center_merge if card else 0.0, "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:
+            if p.name == "model":
+                continue
             if p.kind == ParameterType.PARAMETER_DOUBLE_ARRAY:
                 self.declare_parameter(p.name, Parameter.Type.DOUBLE_ARRAY, _describe(p))
             else:

@@ -353,3 +353,32 @@ def test_signals_shut_down_cleanly_even_with_a_frame_in_flight(tmp_path, sig):
     assert totals["received"] == in_flight + sum(totals[k] for k in (
         "published", "invalid", "failed", "dropped_stale", "skipped_old",
         "dropped_at_shutdown")), log
+
+
+def test_a_model_given_at_start_up_brings_its_own_cards_settings(tmp_path):
+    """A per-part model's calibration (θ, γ, gate, merge, part_radius) applies without repeating
+    it as parameters; a parameter given explicitly still wins."""
+    from fpcc_ros.segmenter import SegmenterNode
+
+    custom = _model(tmp_path, "my_part", TINY.read_bytes(), part_radius=0.0421,
+                    score_threshold=0.37, screening_factor=0.45, feature_gate=1.7,
+                    center_merge=0.6)
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        node = SegmenterNode(context=context, parameter_overrides=[
+            Parameter("model", value=str(custom)), Parameter("feature_gate", value=2.5)])
+        try:
+            values = {name: node.get_parameter(name).value for name in
+                      ("part_radius", "score_threshold", "screening_factor", "feature_gate",
+                       "center_merge")}
+            cfg = node._pipeline.config
+        finally:
+            node.stop_worker()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert values == {"part_radius": 0.0421, "score_threshold": 0.37, "screening_factor": 0.45,
+                      "feature_gate": 2.5, "center_merge": 0.6}
+    assert (cfg.part_radius, cfg.screening_factor, cfg.feature_gate, cfg.center_merge) == \
+        (0.0421, 0.45, 2.5, 0.6)
