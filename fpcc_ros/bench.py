@@ -370,7 +370,10 @@ def _at_radius(pipeline: Any, radius: float) -> Any:
 def postprocess_case(scene: BenchScene, points: int = 100_000, seed: int = 0,
                      embedding_dim: int = 128) -> dict[str, np.ndarray | float]:
     """``points`` valid points of a labelled scene with the ground-truth center scores and
-    embeddings a trained network would give (one direction per instance plus noise)."""
+    embeddings a trained network would give: one direction per instance, 2 apart (beyond the
+    loss's eps2 = 1), plus noise of norm ~0.25, so points of one instance lie within eps1 = 0.5
+    of each other as the hinge asks (with noise of norm ~0.57 the calibrated feature gate of
+    0.75 rejected nearly every point and the case scored P 0)."""
     from msg_tools.point_cloud2 import read_xyz
 
     assert scene.gt is not None and scene.center_score is not None
@@ -381,7 +384,8 @@ def postprocess_case(scene: BenchScene, points: int = 100_000, seed: int = 0,
     gt = scene.gt[pick]
     directions = rng.normal(size=(int(gt.max()) + 1, embedding_dim))
     directions *= 2.0 / np.linalg.norm(directions, axis=1, keepdims=True)
-    embedding = (directions[gt] + rng.normal(scale=0.05, size=(len(pick), embedding_dim)))
+    noise = rng.normal(scale=0.25 / np.sqrt(embedding_dim), size=(len(pick), embedding_dim))
+    embedding = directions[gt] + noise
     return {"xyz": xyz[pick].astype(np.float64), "score": scene.center_score[pick],
             "embedding": embedding.astype(np.float32), "gt": gt,
             "part_radius": scene.part_radius}
