@@ -781,6 +781,17 @@ def config_info(config: Any) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # plot
 # ---------------------------------------------------------------------------------------------
+def _style_axis(ax: Any, xlabel: str, ylabel: str, title: str, from_zero_x: bool = True) -> None:
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if from_zero_x:
+        ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+
 def plot(report: BenchReport, path: Path) -> Path:
     """Latency vs number of instances (synth bins) and vs number of valid points (all scenes)."""
     import matplotlib
@@ -799,12 +810,9 @@ def plot(report: BenchReport, path: Path) -> Path:
                 ax1.errorbar(x, med, yerr=np.vstack([np.zeros_like(med), p90 - med]), fmt=style,
                              capsize=3,
                              label=("end to end" if stage == "total" else stage))
-        ax1.set_xlabel("parts in the bin (synthetic 640x480 scenes)")
-        ax1.set_ylabel("latency, ms (median, bar to p90)")
-        ax1.set_ylim(bottom=0)
-        ax1.set_title("latency vs number of instances")
-        ax1.grid(alpha=0.3)
-        ax1.legend(fontsize=8)
+        _style_axis(ax1, "parts in the bin (synthetic 640x480 scenes)",
+                    "latency, ms (median, bar to p90)", "latency vs number of instances",
+                    from_zero_x=False)
     markers = {"demo": ("D", "demo bag"), "synth": ("o", "synthetic bins"), "crop": ("s", "crops")}
     for kind, (marker, label) in markers.items():
         rows = [s for s in report.scenes if s.kind == kind]
@@ -822,20 +830,10 @@ def plot(report: BenchReport, path: Path) -> Path:
         if rows:
             ax3.scatter([s.inferred_points / 1e3 for s in rows], [s.stat("total") for s in rows],
                         marker=marker, label=label)
-    ax3.set_xlabel("points through the network, halos included (thousands)")
-    ax3.set_ylabel("end-to-end latency, ms (median)")
-    ax3.set_xlim(left=0)
-    ax3.set_ylim(bottom=0)
-    ax3.set_title("latency vs network work")
-    ax3.grid(alpha=0.3)
-    ax3.legend(fontsize=8)
-    ax2.set_xlabel("valid points (thousands)")
-    ax2.set_ylabel("end-to-end latency, ms (median)")
-    ax2.set_xlim(left=0)
-    ax2.set_ylim(bottom=0)
-    ax2.set_title("latency vs number of valid points")
-    ax2.grid(alpha=0.3)
-    ax2.legend(fontsize=8)
+    _style_axis(ax3, "points through the network, halos included (thousands)",
+                "end-to-end latency, ms (median)", "latency vs network work")
+    _style_axis(ax2, "valid points (thousands)", "end-to-end latency, ms (median)",
+                "latency vs number of valid points")
     m = report.machine
     fig.suptitle(f"fpcc bench: {m.get('cpus')} CPUs, onnxruntime {m.get('onnxruntime')}, "
                  f"{report.model.get('name')}" + (" (untrained)" if report.model.get("untrained") else ""),

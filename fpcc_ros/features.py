@@ -74,13 +74,18 @@ def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
             if len(idx):
                 blocks.append(idx)
             continue
-        pts = xyz[idx]
-        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
-        order = np.argsort(pts[:, axis], kind="stable")
-        half = len(idx) // 2
-        pending.append(idx[order[half:]])
-        pending.append(idx[order[:half]])
+        low, high = _cut_longest_axis(xyz, idx, len(idx) // 2)
+        pending.append(high)
+        pending.append(low)
     return blocks
+
+
+def _cut_longest_axis(xyz: np.ndarray, idx: np.ndarray, at: int) -> tuple[np.ndarray, np.ndarray]:
+    """``idx`` split into its ``at`` lowest points along the axis of largest extent, and the rest."""
+    pts = xyz[idx]
+    axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+    order = np.argsort(pts[:, axis], kind="stable")
+    return idx[order[:at]], idx[order[at:]]
 
 
 def balanced_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
@@ -101,13 +106,10 @@ def balanced_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
             if len(idx):
                 blocks.append(idx)
             continue
-        pts = xyz[idx]
-        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
-        order = np.argsort(pts[:, axis], kind="stable")
         left = parts // 2
-        cut = (len(idx) * left) // parts
-        pending.append((idx[order[cut:]], parts - left))
-        pending.append((idx[order[:cut]], left))
+        low, high = _cut_longest_axis(xyz, idx, (len(idx) * left) // parts)
+        pending.append((high, parts - left))
+        pending.append((low, left))
     return blocks
 
 

@@ -142,29 +142,30 @@ class _BlockRun:
     embedding: np.ndarray   # (len(ext), D)
     score: np.ndarray       # (len(core),)
 
-    def _rows(self, xyz: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The centers this pass saw (ranks) and their rows in the pass."""
-        row = np.full(len(xyz), -1, np.int64)
+    def centers_seen(self, num_points: int, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The centers this pass saw: their ranks and their rows in the pass (its embeddings)."""
+        row = np.full(num_points, -1, np.int64)
         row[self.ext] = np.arange(len(self.ext))
         reachable = np.flatnonzero(row[centers] >= 0)
-        return reachable, row
+        return reachable, row[centers[reachable]]
 
-    def close_centers(self, xyz: np.ndarray, centers: np.ndarray, cfg: PipelineConfig
-                      ) -> np.ndarray:
-        """Pairs of center ranks this pass judges to be one part (see close_center_pairs)."""
-        reachable, row = self._rows(xyz, centers)
-        pairs = close_center_pairs(xyz[centers[reachable]], self.embedding[row[centers[reachable]]],
-                                   cfg.part_radius, cfg.center_merge)
-        return reachable[pairs]
-
-    def assign(self, xyz: np.ndarray, centers: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
+    def assign(self, xyz: np.ndarray, centers: np.ndarray, seen: tuple[np.ndarray, np.ndarray],
+               cfg: PipelineConfig) -> np.ndarray:
         """Global labels (center rank + 1, 0 = none) for the core points."""
-        reachable, row = self._rows(xyz, centers)
+        ranks, rows = seen
         local = assign_to_center_points(
-            xyz[self.core], self.embedding[:len(self.core)], xyz[centers[reachable]],
-            self.embedding[row[centers[reachable]]], cfg.part_radius, cfg.feature_gate)
-        global_ids = np.concatenate([[0], reachable + 1]).astype(np.int32)
+            xyz[self.core], self.embedding[:len(self.core)], xyz[centers[ranks]],
+            self.embedding[rows], cfg.part_radius, cfg.feature_gate)
+        global_ids = np.concatenate([[0], ranks + 1]).astype(np.int32)
         return global_ids[local]
+
+    def close_centers(self, xyz: np.ndarray, centers: np.ndarray,
+                      seen: tuple[np.ndarray, np.ndarray], cfg: PipelineConfig) -> np.ndarray:
+        """Pairs of center ranks this pass judges to be one part (see close_center_pairs)."""
+        ranks, rows = seen
+        pairs = close_center_pairs(xyz[centers[ranks]], self.embedding[rows], cfg.part_radius,
+                                   cfg.center_merge)
+        return ranks[pairs]
 
 
 class Pipeline:
@@ -217,16 +218,19 @@ class Pipeline:
 
         # 6. nearest center in feature space (within d_max in 3D); each block compares its
         #    points with the centers' embeddings from the same network pass (embeddings of
-        #    different passes are not comparable)
+        #    different passes are not comparable). Centers that one pass sees as one part
+        #    (within 2 d_max, embeddings closer than center_merge) become one instance: a small
+        #    screening radius keeps parallel elongated parts apart without splitting each
+        merging = cfg.center_merge > 0 and len(centers) > 1
         net_labels = np.zeros(len(net_xyz), np.int32)
+        pairs = [np.zeros((0, 2), np.int64)]
         for run in runs:
-            net_labels[run.core] = run.assign(net_xyz, centers, cfg)
-        # 6b. centers that one pass sees as one part (within 2 d_max, embeddings closer than
-        #     center_merge) become one instance: a small screening radius keeps parallel
-        #     neighbours of an elongated part apart without splitting the part itself
-        if cfg.center_merge > 0 and len(centers) > 1:
-            pairs = np.concatenate([run.close_centers(net_xyz, centers, cfg) for run in runs])
-            group = merge_centers(len(centers), pairs)
+            seen = run.centers_seen(len(net_xyz), centers)
+            net_labels[run.core] = run.assign(net_xyz, centers, seen, cfg)
+            if merging:
+                pairs.append(run.close_centers(net_xyz, centers, seen, cfg))
+        if merging:
+            group = merge_centers(len(centers), np.concatenate(pairs))
             net_labels = np.concatenate([[0], group + 1]).astype(np.int32)[net_labels]
         clock.lap("cluster")
 
