@@ -26,7 +26,7 @@ setup(
         *[(f"share/{PACKAGE}/{d}", glob(f"{d}/*")) for d in sorted(glob("bags/*")) if glob(f"{d}/*")],
     ],
     python_requires=">=3.10",
-    install_requires=["setuptools", "numpy", "scipy", "onnxruntime"],
+    install_requires=["setuptools", "numpy", "scipy", "onnxruntime", "threadpoolctl"],
     extras_require={
         # pip-only machines get ROS 2 from PyPI wheels; a ROS install already provides these.
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],

@@ -8,6 +8,9 @@ floor point near a part would be painted as part of it.
 """
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
+from functools import cache
+
 import numpy as np
 
 
@@ -27,6 +30,38 @@ def assign_to_centers(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarra
 ROW_CHUNK = 4096  # points per pass: the (chunk, centers) temporaries stay in cache
 
 
+@cache
+def _blas_controller():
+    """threadpoolctl's view of the loaded BLAS libraries (found once: the scan takes ~ms), or
+    None without threadpoolctl."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:
+        return None
+    return ThreadpoolController()
+
+
+def single_thread_blas() -> AbstractContextManager:
+    """BLAS pinned to the calling thread from this call until the block exits, when
+    threadpoolctl can do it (use it directly in a ``with``: the limit is set on creation).
+
+    The assignment's products are small (tens of thousands of rows x tens of centers): one
+    thread computes one in about a millisecond, while OpenBLAS's default pool, woken for it on a
+    2-core machine where onnxruntime or another process keeps the other core busy, measured
+    190 ms for the same work (100k points, 30 centers, while a training run loaded the machine).
+    """
+    controller = _blas_controller()
+    return nullcontext() if controller is None else controller.limit(limits=1, user_api="blas")
+
+
+def _center_products(e: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """``e @ centers.T``: one single-threaded BLAS call, or numpy's own loops (same values up to
+    rounding, ~2x slower) when BLAS cannot be pinned to one thread."""
+    if _blas_controller() is None:
+        return np.einsum("ik,jk->ij", e, centers)
+    return e @ centers.T
+
+
 def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: np.ndarray,
                             center_embedding: np.ndarray, d_max: float,
                             feature_gate: float = np.inf) -> np.ndarray:
@@ -37,10 +72,9 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
     cent of all pairs (100k points x 18 centers: 49k of 1.8M). So, per chunk of points: 3D
     distances (float32) to the centers near the chunk's bounding box; a point with one
     admissible center only needs the gate (one dot product), one with several the embedding dot
-    products with those. The choice per point is the one of the dense rule: the admissible
-    center nearest in feature space, then the gate. The small products use numpy's own loops,
-    not BLAS: OpenBLAS wakes its thread pool for each one, which on a 2-core machine busy with
-    onnxruntime costs more than the product.
+    products with those (one BLAS product per chunk, on the calling thread: see
+    :func:`single_thread_blas`). The choice per point is the one of the dense rule: the
+    admissible center nearest in feature space, then the gate.
     """
     n = len(xyz)
     labels = np.zeros(n, dtype=np.int32)
@@ -59,41 +93,43 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
     hi = np.maximum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)
     gap = np.maximum(np.maximum(lo[:, None] - cxyz[None], cxyz[None] - hi[:, None]), 0.0)
     near_chunk = np.einsum("cjk,cjk->cj", gap, gap) <= d2                      # (chunks, m)
-    for k, start in enumerate(starts):
-        near = np.flatnonzero(near_chunk[k])
-        if len(near) == 0:
-            continue
-        px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
-        c = cxyz32[near]
-        # (centers, points) layout: the reductions below run along contiguous rows
-        space = (px[None, :] - c[:, 0:1]) ** 2
-        space += (py[None, :] - c[:, 1:2]) ** 2
-        space += (pz[None, :] - c[:, 2:3]) ** 2
-        admissible = space <= d2
-        count = admissible.sum(axis=0, dtype=np.int32)
-        # one admissible center (most points): it is the choice; only the gate needs |e - c|
-        one = np.flatnonzero(count == 1)
-        if len(one):
-            pick = near[np.argmax(admissible[:, one], axis=0)]
-            e = np.asarray(embedding[start + one], dtype=np.float32)
-            dist_sq = (np.einsum("ij,ij->i", e, e) - 2.0 * np.einsum("ij,ij->i", e, cemb[pick])
-                       + cemb_sq[pick])
-            ok = dist_sq <= gate2
-            labels[start + one[ok]] = (pick[ok] + 1).astype(np.int32)
-        # several: the nearest in feature space among them
-        rows = np.flatnonzero(count > 1)
-        if len(rows) == 0:
-            continue
-        e = np.asarray(embedding[start + rows], dtype=np.float32)
-        # |e - c|^2 = |e|^2 - 2 e.c + |c|^2; the argmin needs only the last two terms
-        feat = np.einsum("jk,ik->ji", cemb[near], e)  # numpy loops: no BLAS threads woken
-        feat *= -2.0
-        feat += cemb_sq[near][:, None]
-        np.putmask(feat, ~admissible[:, rows], np.inf)
-        best = np.argmin(feat, axis=0)
-        best_sq = feat[best, np.arange(len(rows))] + np.einsum("ij,ij->i", e, e)
-        ok = best_sq <= gate2
-        labels[start + rows[ok]] = (near[best[ok]] + 1).astype(np.int32)
+    with single_thread_blas():  # applies on entry to every BLAS call in the loop
+        for k, start in enumerate(starts):
+            near = np.flatnonzero(near_chunk[k])
+            if len(near) == 0:
+                continue
+            px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
+            c = cxyz32[near]
+            # (centers, points) layout: the reductions below run along contiguous rows
+            space = (px[None, :] - c[:, 0:1]) ** 2
+            space += (py[None, :] - c[:, 1:2]) ** 2
+            space += (pz[None, :] - c[:, 2:3]) ** 2
+            admissible = space <= d2
+            count = admissible.sum(axis=0, dtype=np.int32)
+            # one admissible center (most points): it is the choice; only the gate needs |e - c|
+            one = np.flatnonzero(count == 1)
+            if len(one):
+                pick = near[np.argmax(admissible[:, one], axis=0)]
+                e = np.asarray(embedding[start + one], dtype=np.float32)
+                dist_sq = (np.einsum("ij,ij->i", e, e) - 2.0 * np.einsum("ij,ij->i", e, cemb[pick])
+                           + cemb_sq[pick])
+                ok = dist_sq <= gate2
+                labels[start + one[ok]] = (pick[ok] + 1).astype(np.int32)
+            # several: the nearest in feature space among them
+            rows = np.flatnonzero(count > 1)
+            if len(rows) == 0:
+                continue
+            e = np.asarray(embedding[start + rows], dtype=np.float32)
+            # |e - c|^2 = |e|^2 - 2 e.c + |c|^2; the argmin needs only the last two terms.
+            # (rows, centers) layout: the argmin runs along contiguous rows
+            feat = _center_products(e, cemb[near])
+            feat *= -2.0
+            feat += cemb_sq[near]
+            feat[~admissible[:, rows].T] = np.inf
+            best = np.argmin(feat, axis=1)
+            best_sq = feat[np.arange(len(rows)), best] + np.einsum("ij,ij->i", e, e)
+            ok = best_sq <= gate2
+            labels[start + rows[ok]] = (near[best[ok]] + 1).astype(np.int32)
     return labels
 
 
@@ -127,7 +163,8 @@ def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_m
     if len(center_xyz) < 2:
         return np.zeros((0, 2), np.int64)
     near = np.linalg.norm(center_xyz[:, None] - center_xyz[None], axis=2) < 2 * d_max
-    alike = np.linalg.norm(center_embedding[:, None] - center_embedding[None], axis=2) < max_distance
+    alike = np.linalg.norm(center_embedding[:, None] - center_embedding[None],
+                           axis=2) < max_distance
     i, j = np.nonzero(np.triu(near & alike, k=1))
     return np.stack([i, j], axis=1)
 

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from fpcc_ros.clustering import assign_reference, assign_to_centers
+from fpcc_ros import clustering
+from fpcc_ros.clustering import assign_reference, assign_to_centers, single_thread_blas
 
 # Two centers: index 0 at x=0 with embedding (0, 0); index 1 at x=1 with embedding (5, 0).
 XYZ = np.array([
@@ -46,8 +47,19 @@ def test_no_centers_means_no_instances(assign):
     assert assign(XYZ, EMB, np.array([], dtype=np.int64), D_MAX).tolist() == [0] * len(XYZ)
 
 
+@pytest.fixture(params=["blas", "numpy-loops"])
+def products(request, monkeypatch):
+    """Both ways of computing the center products: single-threaded BLAS, and numpy's loops used
+    when threadpoolctl is missing."""
+    if request.param == "numpy-loops":
+        monkeypatch.setattr(clustering, "_blas_controller", lambda: None)
+    else:
+        assert clustering._blas_controller() is not None, "threadpoolctl is a pinned requirement"
+    return request.param
+
+
 @pytest.mark.parametrize("seed", range(4))
-def test_fast_matches_reference_on_random_unambiguous_points(seed):
+def test_fast_matches_reference_on_random_unambiguous_points(seed, products):
     rng = np.random.default_rng(seed)
     centers_xyz = rng.uniform(0, 4, (6, 3))
     centers_emb = rng.normal(0, 3, (6, 16))
@@ -61,3 +73,17 @@ def test_fast_matches_reference_on_random_unambiguous_points(seed):
     agree = ref > 0
     assert agree.sum() > 200
     np.testing.assert_array_equal(fast[agree], ref[agree])
+
+
+def test_single_thread_blas_pins_blas_inside_the_block_only():
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> set[int]:
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+    np.ones((4, 4)) @ np.ones((4, 4))  # numpy's BLAS is loaded
+    before = blas_threads()
+    assert before, "no BLAS library found"
+    with single_thread_blas():
+        assert blas_threads() == {1}
+    assert blas_threads() == before
