@@ -10,38 +10,50 @@ from scipy.spatial import cKDTree
 
 
 # Kept centers found by direct distances before switching to a KD-tree over what is left: a
-# scene has tens of centers, and for those one pass over the shrinking candidate set is cheaper
-# than building a tree (100k points, 12.5k candidates, 18 centers: 1.8 ms instead of 4.6 ms);
-# the tree bounds the cost when a poor score map yields thousands of centers.
+# scene has tens of centers, and for those a few passes over chunks of candidates are cheaper
+# than building a tree; the tree bounds the cost when a poor score map yields thousands.
 DIRECT_CENTERS = 64
+# Candidates per chunk in the direct phase. Candidates come in cloud order, which for an
+# organized cloud is image order, so a chunk is a compact strip of the scene and a center's
+# suppression sphere reaches only a few chunks (100k points, 13.6k candidates, 30 centers:
+# 2.9 ms, against 3.4 ms for passes over all remaining candidates in score order).
+NMS_CHUNK = 1024
 
 
-def nms_centers(xyz: np.ndarray, scores: np.ndarray, threshold: float, radius: float) -> np.ndarray:
+def nms_centers(xyz: np.ndarray, scores: np.ndarray, threshold: float,
+                radius: float) -> np.ndarray:
     """Indices into ``xyz`` of the selected centers, best first.
 
-    Same result as :func:`nms_reference`. Candidates are sorted once by score; the best
-    remaining one is kept and removes every remaining candidate within ``radius`` -- by direct
-    distances over the remaining (compacted) set for the first :data:`DIRECT_CENTERS` centers,
-    then with a KD-tree over the candidates still left: O(m log m + K * remaining) instead of
-    the literal algorithm's O(K * m) Python-level distance evaluations.
+    Same result as :func:`nms_reference`. For the first :data:`DIRECT_CENTERS` centers the best
+    remaining candidate is an argmax over the candidates' scores (suppressed ones set to -inf;
+    argmax's first-index rule is the reference's tie-break) and its sphere is cleared in the
+    chunks of candidates whose bounding boxes it reaches; then a KD-tree over the candidates
+    still left takes over.
     """
     candidates = np.flatnonzero(scores > threshold)
     if len(candidates) == 0:
         return candidates
-    # Highest score first; ties broken by index, as the literal algorithm's argmax does.
-    order = candidates[np.lexsort((candidates, -scores[candidates]))]
-    pts = np.asarray(xyz, dtype=np.float64)[order]
+    pts = np.asarray(xyz, dtype=np.float64)[candidates]
+    work = np.array(scores[candidates], dtype=np.float64)  # -inf once suppressed or kept
     r2 = float(radius) * float(radius)
-    rest = np.arange(len(order))
+    starts = np.arange(0, len(pts), NMS_CHUNK)
+    lo = np.minimum.reduceat(pts, starts, axis=0)
+    hi = np.maximum.reduceat(pts, starts, axis=0)
     keep: list[int] = []
-    while len(rest) and len(keep) < DIRECT_CENTERS:
-        best = int(rest[0])
+    while len(keep) < DIRECT_CENTERS:
+        best = int(np.argmax(work))
+        if work[best] == -np.inf:
+            return candidates[np.asarray(keep, dtype=np.int64)]
         keep.append(best)
-        d = pts[rest[1:]] - pts[best]
-        rest = rest[1:][np.einsum("ij,ij->i", d, d) > r2]
-    if len(rest):
-        keep += [int(rest[i]) for i in _nms_tree(pts[rest], radius)]
-    return order[np.asarray(keep, dtype=np.int64)]
+        p = pts[best]
+        gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        for start in starts[np.einsum("ij,ij->i", gap, gap) <= r2].tolist():
+            d = pts[start:start + NMS_CHUNK] - p
+            work[start:start + NMS_CHUNK][np.einsum("ij,ij->i", d, d) <= r2] = -np.inf
+    rest = np.flatnonzero(work > -np.inf)
+    rest = rest[np.lexsort((rest, -work[rest]))]  # rank order; ties by index, as the reference
+    keep += rest[_nms_tree(pts[rest], radius)].tolist()
+    return candidates[np.asarray(keep, dtype=np.int64)]
 
 
 def _nms_tree(pts: np.ndarray, radius: float) -> list[int]:

@@ -165,10 +165,12 @@ def test_assignment_agrees_with_the_paper_rule_where_unambiguous(monkeypatch):
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("direct", [0, 2, 64])
-def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, monkeypatch):
+@pytest.mark.parametrize("chunk", [16, 1024])
+def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, chunk, monkeypatch):
     import fpcc_ros.nms as nms
 
     monkeypatch.setattr(nms, "DIRECT_CENTERS", direct)
+    monkeypatch.setattr(nms, "NMS_CHUNK", chunk)   # one chunk, or many spread over the cloud
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(0, 1, (500, 3))
     scores = np.round(rng.uniform(0, 1, 500), 2)   # many ties: broken by index
