@@ -56,6 +56,7 @@ class CalibrationRow:
     counts: InstanceCounts
     screening_factor: float = 1.0
     center_merge: float = 0.0
+    center_prototype: float = 0.0
 
     @property
     def f1(self) -> float:
@@ -65,12 +66,16 @@ class CalibrationRow:
 
 def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               gates: list[float], progress=None, screening_factors: list[float] | None = None,
-              merges: list[float] | None = None) -> list[CalibrationRow]:
+              merges: list[float] | None = None,
+              prototypes: list[float] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, summed over ``scenes``;
-    ``screening_factors`` / ``merges`` None keep the card's γ / center_merge."""
+    ``screening_factors`` / ``merges`` / ``prototypes`` None keep the card's γ / center_merge /
+    center_prototype."""
     factors = screening_factors or [model.card.screening_factor]
     merges = merges if merges is not None else [model.card.center_merge]
-    rows = {key: InstanceCounts() for key in itertools.product(thresholds, gates, factors, merges)}
+    prototypes = prototypes if prototypes is not None else [model.card.center_prototype]
+    rows = {key: InstanceCounts()
+            for key in itertools.product(thresholds, gates, factors, merges, prototypes)}
     memo = _MemoModel(model)
     inputs: dict = {}
     for path in (progress(scenes) if progress else scenes):
@@ -82,10 +87,11 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
             if scene["points"].ndim == 3 else 300
         memo._cache.clear()
         inputs.clear()
-        for t, g, f, m in rows:
+        for key in rows:
+            t, g, f, m, p = key
             cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
                                            score_threshold=t, feature_gate=g, screening_factor=f,
-                                           center_merge=m)
+                                           center_merge=m, center_prototype=p)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
-            rows[(t, g, f, m)] += scene_counts(labels[finite], gt[finite], "visible", limit)
-    return [CalibrationRow(t, g, c, f, m) for (t, g, f, m), c in rows.items()]
+            rows[key] += scene_counts(labels[finite], gt[finite], "visible", limit)
+    return [CalibrationRow(t, g, c, f, m, p) for (t, g, f, m, p), c in rows.items()]

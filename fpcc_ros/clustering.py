@@ -133,6 +133,37 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
     return labels
 
 
+# The loss pulls points of one instance within eps1 of each other in feature space.
+PULL_MARGIN = 0.5
+
+
+def center_prototypes(xyz: np.ndarray, embedding: np.ndarray, center_rows: np.ndarray,
+                      radius: float, pull: float = PULL_MARGIN) -> np.ndarray:
+    """(m, D) embedding standing for each center: the mean over the points within ``radius``
+    of it in 3D whose embeddings lie within ``pull`` of the center's own.
+
+    The paper compares every point with the center point's embedding, one noisy sample of its
+    instance's. The hinge loss puts the instance's points within eps1 = ``pull`` of each other,
+    so the mean of the center's neighbours that are that close in feature space estimates the
+    instance's embedding with the noise averaged out; neighbours of another part (beyond eps2)
+    are left out. ``xyz`` and ``embedding`` are one network pass's rows; ``center_rows`` index
+    them. radius 0 gives the centers' own embeddings.
+    """
+    own = np.asarray(embedding[center_rows], dtype=np.float32)
+    if radius <= 0 or len(center_rows) == 0:
+        return own
+    emb = np.asarray(embedding, dtype=np.float32)
+    pts = np.asarray(xyz, dtype=np.float32)
+    d = pts[None, :, :] - pts[center_rows][:, None, :]
+    near = np.einsum("mnk,mnk->mn", d, d) <= np.float32(radius) ** 2        # (m, n)
+    with single_thread_blas():
+        feature_sq = (np.einsum("ij,ij->i", emb, emb)[None, :] - 2.0 * (own @ emb.T)
+                      + np.einsum("ij,ij->i", own, own)[:, None])
+        weight = (near & (feature_sq <= pull * pull)).astype(np.float32)
+        # each center is its own neighbour (distance 0), so no row of weights is empty
+        return (weight @ emb) / weight.sum(axis=1, keepdims=True)
+
+
 def assign_reference(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray,
                      d_max: float, feature_gate: float = np.inf) -> np.ndarray:
     """The paper's rule, one point at a time: nearest center in feature space; noise if that

@@ -32,6 +32,8 @@ class ModelCard:
     score_threshold: float = 0.6
     feature_gate: float = 1.0
     center_merge: float = 0.0   # merge centers within d_max closer than this in embedding space
+    center_prototype: float = 0.0  # part radii around a center whose like points' mean embedding
+    #   stands for it (clustering.center_prototypes); 0 = the center point's own
     embedding_dim: int = EMBEDDING_DIM
     knn_near: int = 0    # 0 = plain kNN; else the dilated neighbourhood of features.neighbour_columns
     knn_reach: int = 0
@@ -125,6 +127,9 @@ def _check_values(card: ModelCard, path: Path) -> None:
         ("feature_gate", card.feature_gate, _positive(card.feature_gate), "> 0"),
         ("center_merge", card.center_merge,
          _number(card.center_merge) and 0 <= card.center_merge <= 10, "between 0 (off) and 10"),
+        ("center_prototype", card.center_prototype,
+         _number(card.center_prototype) and 0 <= card.center_prototype <= 2,
+         "between 0 (the center point's own embedding) and 2 part radii"),
         ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
          f"{list(FEATURE_NAMES)} (this runtime's features)"),
     ]

@@ -11,7 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from fpcc_ros.clustering import assign_to_center_points, close_center_pairs, merge_centers
+from fpcc_ros.clustering import (assign_to_center_points, center_prototypes, close_center_pairs,
+                                 merge_centers)
 from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs,
                                dominant_plane, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
@@ -40,6 +41,8 @@ class PipelineConfig:
     voxel_size: float = AUTO_VOXEL
     feature_gate: float = 1.0
     center_merge: float = 0.0  # merge centers within 2 d_max whose embeddings are closer (0 = off)
+    center_prototype: float = 0.0  # a center's embedding: mean of its like neighbours within
+    #   this many part radii (clustering.center_prototypes); 0 = its own, as in the paper
     voxel_factor: float = 0.08
     block_size: int = 4096
     block_halo: float = 0.5   # context around each block, in part radii (0.5: as accurate as 1.0 on our validation scenes, 25% faster)
@@ -53,7 +56,8 @@ class PipelineConfig:
     def from_card(cls, card: ModelCard, **overrides: Any) -> "PipelineConfig":
         base = cls(part_radius=card.part_radius, screening_factor=card.screening_factor,
                    score_threshold=card.score_threshold, feature_gate=card.feature_gate,
-                   center_merge=card.center_merge, voxel_factor=card.voxel_factor,
+                   center_merge=card.center_merge, center_prototype=card.center_prototype,
+                   voxel_factor=card.voxel_factor,
                    block_size=card.block_size)
         return base.replace(**overrides)
 
@@ -90,6 +94,8 @@ class PipelineConfig:
         need(_finite(self.feature_gate) and self.feature_gate > 0, "feature_gate", "> 0")
         need(_finite(self.center_merge) and 0 <= self.center_merge <= 10, "center_merge",
              "between 0 (off) and 10 (an embedding distance; the paper's eps2 is 1)")
+        need(_finite(self.center_prototype) and 0 <= self.center_prototype <= 2,
+             "center_prototype", "between 0 (the center point's own embedding) and 2 part radii")
         need(isinstance(self.block_size, int) and self.block_size >= 32, "block_size", ">= 32")
         need(_finite(self.block_halo) and 0 <= self.block_halo <= 5, "block_halo",
              "between 0 and 5 part radii")
@@ -149,21 +155,26 @@ class _BlockRun:
         reachable = np.flatnonzero(row[centers] >= 0)
         return reachable, row[centers[reachable]]
 
-    def assign(self, xyz: np.ndarray, centers: np.ndarray, seen: tuple[np.ndarray, np.ndarray],
-               cfg: PipelineConfig) -> np.ndarray:
+    def center_embeddings(self, xyz: np.ndarray, seen: tuple[np.ndarray, np.ndarray],
+                          cfg: PipelineConfig) -> np.ndarray:
+        """The embedding standing for each seen center in this pass: its own, or with
+        ``center_prototype`` > 0 the mean of its like neighbours (see center_prototypes)."""
+        return center_prototypes(xyz[self.ext], self.embedding, seen[1],
+                                 cfg.center_prototype * cfg.part_radius)
+
+    def assign(self, xyz: np.ndarray, centers: np.ndarray, ranks: np.ndarray,
+               center_embedding: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
         """Global labels (center rank + 1, 0 = none) for the core points."""
-        ranks, rows = seen
         local = assign_to_center_points(
             xyz[self.core], self.embedding[:len(self.core)], xyz[centers[ranks]],
-            self.embedding[rows], cfg.part_radius, cfg.feature_gate)
+            center_embedding, cfg.part_radius, cfg.feature_gate)
         global_ids = np.concatenate([[0], ranks + 1]).astype(np.int32)
         return global_ids[local]
 
-    def close_centers(self, xyz: np.ndarray, centers: np.ndarray,
-                      seen: tuple[np.ndarray, np.ndarray], cfg: PipelineConfig) -> np.ndarray:
+    def close_centers(self, xyz: np.ndarray, centers: np.ndarray, ranks: np.ndarray,
+                      center_embedding: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
         """Pairs of center ranks this pass judges to be one part (see close_center_pairs)."""
-        ranks, rows = seen
-        pairs = close_center_pairs(xyz[centers[ranks]], self.embedding[rows], cfg.part_radius,
+        pairs = close_center_pairs(xyz[centers[ranks]], center_embedding, cfg.part_radius,
                                    cfg.center_merge)
         return ranks[pairs]
 
@@ -220,15 +231,17 @@ class Pipeline:
         #    points with the centers' embeddings from the same network pass (embeddings of
         #    different passes are not comparable). Centers that one pass sees as one part
         #    (within 2 d_max, embeddings closer than center_merge) become one instance: a small
-        #    screening radius keeps parallel elongated parts apart without splitting each
+        #    screening radius keeps parallel elongated parts apart without splitting each. With
+        #    center_prototype > 0 a center's embedding is the mean of its like neighbours
         merging = cfg.center_merge > 0 and len(centers) > 1
         net_labels = np.zeros(len(net_xyz), np.int32)
         pairs = [np.zeros((0, 2), np.int64)]
         for run in runs:
             seen = run.centers_seen(len(net_xyz), centers)
-            net_labels[run.core] = run.assign(net_xyz, centers, seen, cfg)
+            center_embedding = run.center_embeddings(net_xyz, seen, cfg)
+            net_labels[run.core] = run.assign(net_xyz, centers, seen[0], center_embedding, cfg)
             if merging:
-                pairs.append(run.close_centers(net_xyz, centers, seen, cfg))
+                pairs.append(run.close_centers(net_xyz, centers, seen[0], center_embedding, cfg))
         if merging:
             group = merge_centers(len(centers), np.concatenate(pairs))
             net_labels = np.concatenate([[0], group + 1]).astype(np.int32)[net_labels]

@@ -47,7 +47,7 @@ INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
-                   "roi_max", "voxel_size", "feature_gate", "center_merge")
+                   "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -104,6 +104,11 @@ PARAMS = (
            "Two centers within 2 part_radius whose embeddings are closer than this are one part "
            "(lets a small screening_factor separate parallel elongated parts without splitting "
            "each). 0 = off. Default: the model card's.", 0.0, 10.0),
+    _Param("center_prototype", ParameterType.PARAMETER_DOUBLE,
+           "Each center is compared with the points by the mean embedding of its neighbours "
+           "within this many part radii that lie within the loss's pull margin (0.5) of it "
+           "(less noisy than one point's). 0 = the center point's own, as in the paper. "
+           "Default: the model card's.", 0.0, 2.0),
     _Param("threads", ParameterType.PARAMETER_INTEGER,
            "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
@@ -190,7 +195,9 @@ class SegmenterNode(Node):
             "score_threshold": card.score_threshold if card else 0.6,
             "min_points": PipelineConfig.min_points, "voxel_size": AUTO_VOXEL,
             "feature_gate": card.feature_gate if card else 1.0,
-            "center_merge": card.center_merge if card else 0.0, "threads": 0, "max_input_age": 0.0,
+            "center_merge": card.center_merge if card else 0.0,
+            "center_prototype": card.center_prototype if card else 0.0,
+            "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:
             if p.name == "model":

@@ -362,7 +362,7 @@ def test_a_model_given_at_start_up_brings_its_own_cards_settings(tmp_path):
 
     custom = _model(tmp_path, "my_part", TINY.read_bytes(), part_radius=0.0421,
                     score_threshold=0.37, screening_factor=0.45, feature_gate=1.7,
-                    center_merge=0.6)
+                    center_merge=0.6, center_prototype=0.7)
     context = Context()
     rclpy.init(context=context)
     try:
@@ -371,7 +371,7 @@ def test_a_model_given_at_start_up_brings_its_own_cards_settings(tmp_path):
         try:
             values = {name: node.get_parameter(name).value for name in
                       ("part_radius", "score_threshold", "screening_factor", "feature_gate",
-                       "center_merge")}
+                       "center_merge", "center_prototype")}
             cfg = node._pipeline.config
         finally:
             node.stop_worker()
@@ -379,6 +379,6 @@ def test_a_model_given_at_start_up_brings_its_own_cards_settings(tmp_path):
     finally:
         rclpy.try_shutdown(context=context)
     assert values == {"part_radius": 0.0421, "score_threshold": 0.37, "screening_factor": 0.45,
-                      "feature_gate": 2.5, "center_merge": 0.6}
-    assert (cfg.part_radius, cfg.screening_factor, cfg.feature_gate, cfg.center_merge) == \
-        (0.0421, 0.45, 2.5, 0.6)
+                      "feature_gate": 2.5, "center_merge": 0.6, "center_prototype": 0.7}
+    assert (cfg.part_radius, cfg.screening_factor, cfg.feature_gate, cfg.center_merge,
+            cfg.center_prototype) == (0.0421, 0.45, 2.5, 0.6, 0.7)

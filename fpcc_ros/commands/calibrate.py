@@ -1,6 +1,6 @@
-"""`fpcc calibrate`: choose a model's score threshold, feature gate, screening factor and
-center merge on
-validation scenes (never on evaluation data) and, with --write, store them in its card."""
+"""`fpcc calibrate`: choose a model's score threshold, feature gate, screening factor, center
+merge and center prototype on validation scenes (never on evaluation data) and, with --write,
+store them in its card."""
 from __future__ import annotations
 
 import argparse
@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "parts want less)")
     parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5, 1.0],
                         help="center_merge values to try (0 = off)")
+    parser.add_argument("--prototypes", type=float, nargs="+", default=[0.0, 0.6],
+                        help="center_prototype values to try (part radii; 0 = the center "
+                        "point's own embedding)")
     parser.add_argument("--limit", type=int, default=0, help="use only the first N scenes")
     parser.add_argument("--write", action="store_true", help="put the best values in the card")
 
@@ -50,26 +53,30 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc calibrate: {exc}", file=sys.stderr)
         return 2
     rows = calibrate(model, scenes, args.thresholds, args.gates, progress=tqdm,
-                     screening_factors=args.screening, merges=args.merges)
+                     screening_factors=args.screening, merges=args.merges,
+                     prototypes=args.prototypes)
     rows.sort(key=lambda r: -r.f1)
-    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'P':>6} {'R':>6} {'F1':>6}")
+    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'P':>6} {'R':>6} "
+          f"{'F1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
-              f"{r.center_merge:>6.2f} {r.counts.precision:>6.3f} {r.counts.recall:>6.3f} "
-              f"{r.f1:>6.3f}")
+              f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.counts.precision:>6.3f} "
+              f"{r.counts.recall:>6.3f} {r.f1:>6.3f}")
     best = rows[0]
     print(f"best: score_threshold {best.score_threshold}, feature_gate {best.feature_gate}, "
-          f"screening_factor {best.screening_factor}, center_merge {best.center_merge} "
-          f"(F1 {best.f1:.3f} on {len(scenes)} scenes)")
+          f"screening_factor {best.screening_factor}, center_merge {best.center_merge}, "
+          f"center_prototype {best.center_prototype} (F1 {best.f1:.3f} on {len(scenes)} scenes)")
     if args.write:
         path = card_path_for(args.model)
         card = json.loads(path.read_text())
         card["score_threshold"], card["feature_gate"] = best.score_threshold, best.feature_gate
         card["screening_factor"], card["center_merge"] = best.screening_factor, best.center_merge
+        card["center_prototype"] = best.center_prototype
         card.setdefault("metrics", {})["calibration"] = {
             "scenes": [str(s) for s in scenes], "protocol": "visible",
             "score_threshold": best.score_threshold, "feature_gate": best.feature_gate,
             "screening_factor": best.screening_factor, "center_merge": best.center_merge,
+            "center_prototype": best.center_prototype,
             "precision": best.counts.precision, "recall": best.counts.recall, "f1": best.f1}
         path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"wrote {path}")
