@@ -14,14 +14,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, nargs="+", required=True, metavar="DIR",
                         help="validation scene NPZ files or folders of them")
     parser.add_argument("--thresholds", type=float, nargs="+",
-                        default=[0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.7])
-    parser.add_argument("--gates", type=float, nargs="+", default=[0.75, 1.0, 1.5, 3.0])
-    parser.add_argument("--screening", type=float, nargs="+", default=[0.4, 0.5, 0.6, 0.8, 1.0],
+                        default=[0.3, 0.4, 0.5, 0.6, 0.7])
+    parser.add_argument("--gates", type=float, nargs="+", default=[0.75, 1.0, 1.5])
+    parser.add_argument("--screening", type=float, nargs="+", default=[0.5, 0.7, 0.8, 1.0],
                         help="screening factors γ to try (the paper: 0.8-1.0; elongated "
                         "parts want less)")
-    parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5, 1.0],
+    parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5],
                         help="center_merge values to try (0 = off)")
-    parser.add_argument("--prototypes", type=float, nargs="+", default=[0.0, 0.6],
+    parser.add_argument("--prototypes", type=float, nargs="+", default=[0.0, 0.3, 0.6],
                         help="center_prototype values to try (part radii; 0 = the center "
                         "point's own embedding)")
     parser.add_argument("--limit", type=int, default=0, help="use only the first N scenes")
