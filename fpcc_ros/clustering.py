@@ -8,6 +8,7 @@ floor point near a part would be painted as part of it.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import AbstractContextManager, nullcontext
 from functools import cache
 
@@ -62,6 +63,40 @@ def _center_products(e: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return e @ centers.T
 
 
+def _chunk_neighbourhoods(xyz: np.ndarray, center_xyz: np.ndarray, radius: float
+                          ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """Per chunk of :data:`ROW_CHUNK` consecutive points: its first row, the centers within
+    ``radius`` of its bounding box, and which of its points lie within ``radius`` of each of
+    those, as a (centers, points) bool array.
+
+    Consecutive points of a cloud (image order for an organized one) are close in space, so a
+    chunk's box reaches only the centers around it and the rest are never compared.
+    """
+    n = len(xyz)
+    cxyz = np.asarray(center_xyz, dtype=np.float64)
+    cxyz32 = cxyz.astype(np.float32)
+    r2 = float(radius) * float(radius)
+    cols_xyz = np.empty((3, n), np.float32)
+    cols_xyz[:] = np.asarray(xyz).T    # x, y, z rows: contiguous per chunk
+    starts = np.arange(0, n, ROW_CHUNK)
+    # every chunk's bounding box at once, then the centers within radius of each box
+    lo = np.minimum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)  # (chunks, 3)
+    hi = np.maximum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)
+    gap = np.maximum(np.maximum(lo[:, None] - cxyz[None], cxyz[None] - hi[:, None]), 0.0)
+    near_chunk = np.einsum("cjk,cjk->cj", gap, gap) <= r2                      # (chunks, m)
+    for k, start in enumerate(starts.tolist()):
+        near = np.flatnonzero(near_chunk[k])
+        if len(near) == 0:
+            continue
+        px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
+        c = cxyz32[near]
+        # (centers, points) layout: the reductions over centers run along contiguous rows
+        space = (px[None, :] - c[:, 0:1]) ** 2
+        space += (py[None, :] - c[:, 1:2]) ** 2
+        space += (pz[None, :] - c[:, 2:3]) ** 2
+        yield start, near, space <= r2
+
+
 def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: np.ndarray,
                             center_embedding: np.ndarray, d_max: float,
                             feature_gate: float = np.inf) -> np.ndarray:
@@ -69,50 +104,29 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
     centers' embeddings come from another network pass than the points' own rows.
 
     Only (point, center) pairs within d_max in 3D can be chosen, and in a bin they are a few per
-    cent of all pairs (100k points x 18 centers: 49k of 1.8M). So, per chunk of points: 3D
-    distances (float32) to the centers near the chunk's bounding box; a point with one
-    admissible center only needs the gate (one dot product), one with several the embedding dot
-    products with those (one BLAS product per chunk, on the calling thread: see
-    :func:`single_thread_blas`). The choice per point is the one of the dense rule: the
-    admissible center nearest in feature space, then the gate.
+    cent of all pairs (100k points x 18 centers: 49k of 1.8M). So, per chunk of points
+    (:func:`_chunk_neighbourhoods`): a point with one admissible center only needs the gate
+    (one dot product), one with several the embedding dot products with those (one BLAS product
+    per chunk, on the calling thread: see :func:`single_thread_blas`). The choice per point is
+    the one of the dense rule: the admissible center nearest in feature space, then the gate.
     """
     n = len(xyz)
     labels = np.zeros(n, dtype=np.int32)
     if len(center_xyz) == 0 or n == 0:
         return labels
-    cxyz = np.asarray(center_xyz, dtype=np.float64)
-    cxyz32 = cxyz.astype(np.float32)
     cemb = np.asarray(center_embedding, dtype=np.float32)
     cemb_sq = np.einsum("ij,ij->i", cemb, cemb)
-    d2 = float(d_max) * float(d_max)
     gate2 = float(feature_gate) * float(feature_gate)
-    cols_xyz = np.array(xyz, dtype=np.float32).T.copy()  # x, y, z rows: contiguous per chunk
-    starts = np.arange(0, n, ROW_CHUNK)
-    # every chunk's bounding box at once, then the centers within d_max of each box
-    lo = np.minimum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)  # (chunks, 3)
-    hi = np.maximum.reduceat(cols_xyz, starts, axis=1).T.astype(np.float64)
-    gap = np.maximum(np.maximum(lo[:, None] - cxyz[None], cxyz[None] - hi[:, None]), 0.0)
-    near_chunk = np.einsum("cjk,cjk->cj", gap, gap) <= d2                      # (chunks, m)
     with single_thread_blas():  # applies on entry to every BLAS call in the loop
-        for k, start in enumerate(starts):
-            near = np.flatnonzero(near_chunk[k])
-            if len(near) == 0:
-                continue
-            px, py, pz = cols_xyz[:, start:start + ROW_CHUNK]
-            c = cxyz32[near]
-            # (centers, points) layout: the reductions below run along contiguous rows
-            space = (px[None, :] - c[:, 0:1]) ** 2
-            space += (py[None, :] - c[:, 1:2]) ** 2
-            space += (pz[None, :] - c[:, 2:3]) ** 2
-            admissible = space <= d2
+        for start, near, admissible in _chunk_neighbourhoods(xyz, center_xyz, d_max):
             count = admissible.sum(axis=0, dtype=np.int32)
             # one admissible center (most points): it is the choice; only the gate needs |e - c|
             one = np.flatnonzero(count == 1)
             if len(one):
                 pick = near[np.argmax(admissible[:, one], axis=0)]
                 e = np.asarray(embedding[start + one], dtype=np.float32)
-                dist_sq = (np.einsum("ij,ij->i", e, e) - 2.0 * np.einsum("ij,ij->i", e, cemb[pick])
-                           + cemb_sq[pick])
+                dist_sq = (np.einsum("ij,ij->i", e, e)
+                           - 2.0 * np.einsum("ij,ij->i", e, cemb[pick]) + cemb_sq[pick])
                 ok = dist_sq <= gate2
                 labels[start + one[ok]] = (pick[ok] + 1).astype(np.int32)
             # several: the nearest in feature space among them
@@ -152,16 +166,22 @@ def center_prototypes(xyz: np.ndarray, embedding: np.ndarray, center_rows: np.nd
     own = np.asarray(embedding[center_rows], dtype=np.float32)
     if radius <= 0 or len(center_rows) == 0:
         return own
-    emb = np.asarray(embedding, dtype=np.float32)
-    pts = np.asarray(xyz, dtype=np.float32)
-    d = pts[None, :, :] - pts[center_rows][:, None, :]
-    near = np.einsum("mnk,mnk->mn", d, d) <= np.float32(radius) ** 2        # (m, n)
+    own_sq = np.einsum("ij,ij->i", own, own)
+    sums = np.zeros_like(own)
+    counts = np.zeros(len(own), np.float32)
     with single_thread_blas():
-        feature_sq = (np.einsum("ij,ij->i", emb, emb)[None, :] - 2.0 * (own @ emb.T)
-                      + np.einsum("ij,ij->i", own, own)[:, None])
-        weight = (near & (feature_sq <= pull * pull)).astype(np.float32)
-        # each center is its own neighbour (distance 0), so no row of weights is empty
-        return (weight @ emb) / weight.sum(axis=1, keepdims=True)
+        for start, near, within in _chunk_neighbourhoods(xyz, xyz[center_rows], radius):
+            rows = np.flatnonzero(within.any(axis=0))
+            if len(rows) == 0:
+                continue
+            e = np.asarray(embedding[start + rows], dtype=np.float32)
+            feature_sq = (np.einsum("ij,ij->i", e, e)[:, None]
+                          - 2.0 * _center_products(e, own[near]) + own_sq[near])  # (rows, m)
+            weight = (within[:, rows].T & (feature_sq <= pull * pull)).astype(np.float32)
+            sums[near] += weight.T @ e
+            counts[near] += weight.sum(axis=0)
+    # each center is its own neighbour (distance 0), so no count is 0
+    return sums / counts[:, None]
 
 
 def assign_reference(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray,

@@ -76,3 +76,20 @@ def test_prototype_recovers_the_parts_an_outlying_center_embedding_loses(prototy
 def test_center_prototype_range_is_checked():
     with pytest.raises(ConfigError, match="center_prototype"):
         PipelineConfig(part_radius=R).replace(center_prototype=3.0)
+
+
+def test_chunked_prototypes_match_the_dense_definition(monkeypatch):
+    import fpcc_ros.clustering as clustering
+
+    monkeypatch.setattr(clustering, "ROW_CHUNK", 64)   # many chunks, centers across them
+    rng = np.random.default_rng(3)
+    owner = rng.integers(0, 5, 1000)
+    xyz = rng.uniform(0, 1, (5, 3))[owner] + rng.normal(0, 0.03, (1000, 3))
+    emb = rng.normal(0, 2, (5, 16))[owner] + rng.normal(0, 0.12, (1000, 16))
+    centers = np.array([np.flatnonzero(owner == i)[0] for i in range(5)])
+    got = center_prototypes(xyz, emb, centers, radius=0.08)
+    for row, c in zip(got, centers):
+        take = (np.linalg.norm(xyz - xyz[c], axis=1) <= 0.08) & \
+            (np.linalg.norm(emb - emb[c], axis=1) <= 0.5)
+        assert take.sum() > 5
+        np.testing.assert_allclose(row, emb[take].mean(axis=0), atol=1e-5)
