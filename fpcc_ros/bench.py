@@ -392,9 +392,14 @@ def postprocess_case(scene: BenchScene, points: int = 100_000, seed: int = 0,
 
 
 def measure_postprocess(case: dict, runs: int, score_threshold: float = 0.6,
-                        screening_factor: float = 1.0, feature_gate: float = 1.0) -> dict[str, Any]:
-    """Median/p90 of NMS and of nearest-center assignment on one case, plus sanity counts."""
-    from fpcc_ros.clustering import assign_to_centers
+                        screening_factor: float = 1.0, feature_gate: float = 1.0,
+                        center_prototype: float = 0.0, center_merge: float = 0.0
+                        ) -> dict[str, Any]:
+    """Median/p90 of NMS and of the clustering step as the pipeline runs it (center prototypes
+    and merging when the settings ask for them, nearest-center assignment) on one case, plus
+    sanity counts."""
+    from fpcc_ros.clustering import (assign_to_center_points, center_prototypes,
+                                     close_center_pairs, merge_centers)
     from fpcc_ros.nms import nms_centers
 
     xyz, score, emb, radius = case["xyz"], case["score"], case["embedding"], case["part_radius"]
@@ -404,7 +409,12 @@ def measure_postprocess(case: dict, runs: int, score_threshold: float = 0.6,
         t0 = time.perf_counter()
         centers = nms_centers(xyz, score, score_threshold, screening_factor * radius)
         t1 = time.perf_counter()
-        labels = assign_to_centers(xyz, emb, centers, radius, feature_gate)
+        center_emb = center_prototypes(xyz, emb, centers, center_prototype * radius)
+        labels = assign_to_center_points(xyz, emb, xyz[centers], center_emb, radius, feature_gate)
+        if center_merge > 0 and len(centers) > 1:
+            group = merge_centers(len(centers), close_center_pairs(xyz[centers], center_emb,
+                                                                   radius, center_merge))
+            labels = np.concatenate([[0], group + 1]).astype(np.int32)[labels]
         t2 = time.perf_counter()
         if i:  # the first run warms caches
             nms_ms.append((t1 - t0) * 1e3)
@@ -413,6 +423,7 @@ def measure_postprocess(case: dict, runs: int, score_threshold: float = 0.6,
     counts = scene_counts(labels, case["gt"], "paper")
     return {"points": len(xyz), "candidates": int((score > score_threshold).sum()),
             "centers": len(centers), "gt_instances": int(len(np.unique(case["gt"][case["gt"] > 0]))),
+            "center_prototype": center_prototype, "center_merge": center_merge,
             "nms_ms": _quantiles(nms_ms), "assign_ms": _quantiles(assign_ms),
             "total_ms": _quantiles(total), "accuracy": counts.summary()}
 
@@ -666,7 +677,9 @@ class BenchReport:
             p = self.postprocess
             lines.append(f"NMS + clustering alone: {p['points']} points, {p['gt_instances']} GT "
                          f"instances, {p['candidates']} candidates -> {p['centers']} centers: NMS "
-                         f"{_pair(p['nms_ms']['median'], p['nms_ms']['p90'])} ms, assignment "
+                         f"{_pair(p['nms_ms']['median'], p['nms_ms']['p90'])} ms, clustering "
+                         f"(prototypes {p.get('center_prototype', 0)}, merge "
+                         f"{p.get('center_merge', 0)}) "
                          f"{_pair(p['assign_ms']['median'], p['assign_ms']['p90'])} ms, total "
                          f"{_pair(p['total_ms']['median'], p['total_ms']['p90'])} ms (median/p90); "
                          f"P {p['accuracy']['precision']:.3f} R {p['accuracy']['recall']:.3f}")
@@ -863,7 +876,8 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         cfg = pipeline.config
         report.postprocess = {"scene": postprocess_scene.name,
                               **measure_postprocess(case, max(runs, 5), cfg.score_threshold,
-                                                    cfg.screening_factor, cfg.feature_gate)}
+                                                    cfg.screening_factor, cfg.feature_gate,
+                                                    cfg.center_prototype, cfg.center_merge)}
     if report.machine.get("load_avg_1m_at_start") and report.machine["cpus"] and \
             report.machine["load_avg_1m_at_start"] > 0.5 * report.machine["cpus"]:
         report.notes.append(f"the machine was busy at the start (1-minute load "

@@ -71,6 +71,12 @@ def test_bench_smoke(tiny_scene, tiny_pipeline, tmp_path):
     # embeddings made from the ground truth: every center found joins its own instance
     assert post["accuracy"]["precision"] > 0.5
 
+    # the clustering step as the pipeline runs it: prototypes and merging keep the GT instances
+    full = bench.measure_postprocess(bench.postprocess_case(scene), 2, 0.6, 1.0, 1.0,
+                                     center_prototype=0.5, center_merge=0.5)
+    assert full["center_prototype"] == 0.5 and full["assign_ms"]["median"] > 0
+    assert full["accuracy"]["precision"] > 0.5
+
     out = bench.write_json(report, tmp_path / "bench.json")
     data = json.loads(out.read_text())
     assert data["format"] == bench.REPORT_FORMAT
