@@ -47,7 +47,8 @@ INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
-                   "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype")
+                   "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype",
+                   "label_smoothing")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -109,6 +110,10 @@ PARAMS = (
            "within this many part radii that lie within the loss's pull margin (0.5) of it "
            "(less noisy than one point's). 0 = the center point's own, as in the paper. "
            "Default: the model card's.", 0.0, 2.0),
+    _Param("label_smoothing", ParameterType.PARAMETER_INTEGER,
+           "Passes of majority vote over the network's neighbourhood graph after clustering: a "
+           "point takes the label most of its neighbours carry (removes stray assignments "
+           "across part boundaries). 0 = off.", 0, 5),
     _Param("threads", ParameterType.PARAMETER_INTEGER,
            "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
@@ -197,6 +202,7 @@ class SegmenterNode(Node):
             "feature_gate": card.feature_gate if card else 1.0,
             "center_merge": card.center_merge if card else 0.0,
             "center_prototype": card.center_prototype if card else 0.0,
+            "label_smoothing": PipelineConfig.label_smoothing,
             "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:

@@ -23,6 +23,8 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--center-prototype", type=float, default=None,
                        help="part radii around a center whose like points' mean embedding "
                        "stands for it (0 = the center point's own)")
+    group.add_argument("--label-smoothing", type=int, default=None,
+                       help="passes of kNN majority vote after clustering (0 = off; default 1)")
     group.add_argument("--roi-min", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--roi-max", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0 = all)")
@@ -44,7 +46,8 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
-             "feature_gate", "center_merge", "center_prototype", "roi_min", "roi_max")
+             "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
+             "roi_max")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 
