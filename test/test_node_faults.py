@@ -258,9 +258,19 @@ def test_invalid_parameter_updates_are_rejected_with_a_reason_and_the_old_value_
         assert node.get_parameter("model").value == str(TINY)
         assert node._pipeline.model is model_before
 
+    result = _set(node, label_smoothing=9)
+    assert not result.successful and "label_smoothing" in result.reason
+    assert node._pipeline.config.label_smoothing == 1
+
     # the node still runs with the old settings (the accepted ROI holds the whole scene)
     np.testing.assert_array_equal(live.segment(scene(2)), before)
     assert node.stats.failed == 0
+
+    # the new clustering settings apply at runtime
+    result = _set(node, label_smoothing=0, center_prototype=0.5)
+    assert result.successful, result.reason
+    assert (node._pipeline.config.label_smoothing, node._pipeline.config.center_prototype) == \
+        (0, 0.5)
 
 
 def test_a_valid_model_change_swaps_models_between_frames(live, tmp_path):
