@@ -195,3 +195,19 @@ def test_variants_are_parsed_run_and_tabled(tiny_scene, tiny_pipeline):
     assert variant["scenes"][0].inferred_points <= report.scenes[0].inferred_points
     assert "block_halo=0" in report.variants_table()
     assert json.dumps(report.to_json(), default=bench._json_default)
+
+
+def test_postprocess_case_shows_the_paper_rule_beside_extra_clustering_steps(tiny_scene,
+                                                                              tiny_pipeline):
+    import copy
+
+    pipeline = copy.copy(tiny_pipeline)
+    pipeline.config = tiny_pipeline.config.replace(center_prototype=0.5)
+    report = bench.run_bench(pipeline, tiny_scene[:1], runs=1, postprocess_scene=tiny_scene[0])
+    assert report.postprocess["center_prototype"] == 0.5
+    plain = report.postprocess["paper_rule"]
+    assert plain["center_prototype"] == 0 and plain["total_ms"]["median"] > 0
+    assert any("paper's clustering" in g["goal"] for g in report.goals())
+    assert "with the paper's clustering" in report.summary()
+    again = bench.report_from_json(json.loads(json.dumps(report.to_json())))
+    assert again.summary() == report.summary()
