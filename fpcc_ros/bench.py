@@ -399,7 +399,7 @@ def measure_postprocess(case: dict, runs: int, score_threshold: float = 0.6,
     and merging when the settings ask for them, nearest-center assignment) on one case, plus
     sanity counts."""
     from fpcc_ros.clustering import (assign_to_center_points, center_prototypes,
-                                     close_center_pairs, merge_centers)
+                                     close_center_pairs, merge_labels)
     from fpcc_ros.nms import nms_centers
 
     xyz, score, emb, radius = case["xyz"], case["score"], case["embedding"], case["part_radius"]
@@ -412,9 +412,8 @@ def measure_postprocess(case: dict, runs: int, score_threshold: float = 0.6,
         center_emb = center_prototypes(xyz, emb, centers, center_prototype * radius)
         labels = assign_to_center_points(xyz, emb, xyz[centers], center_emb, radius, feature_gate)
         if center_merge > 0 and len(centers) > 1:
-            group = merge_centers(len(centers), close_center_pairs(xyz[centers], center_emb,
-                                                                   radius, center_merge))
-            labels = np.concatenate([[0], group + 1]).astype(np.int32)[labels]
+            labels = merge_labels(labels, len(centers), close_center_pairs(
+                xyz[centers], center_emb, radius, center_merge))
         t2 = time.perf_counter()
         if i:  # the first run warms caches
             nms_ms.append((t1 - t0) * 1e3)

@@ -239,6 +239,13 @@ def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_m
     return np.stack([i, j], axis=1)
 
 
+def merge_labels(labels: np.ndarray, num_centers: int, pairs: np.ndarray) -> np.ndarray:
+    """``labels`` (center rank + 1, 0 = none) with the centers of each connected set of
+    ``pairs`` (see :func:`merge_centers`) carrying one label."""
+    group = merge_centers(num_centers, pairs)
+    return np.concatenate([[0], group + 1]).astype(labels.dtype)[labels]
+
+
 def merge_centers(num_centers: int, pairs: np.ndarray) -> np.ndarray:
     """Group of each center (the lowest-ranked center of its connected set of ``pairs``): the
     labels of merged centers become one instance. ``pairs`` index centers 0..num_centers-1."""

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from fpcc_ros.clustering import (assign_to_center_points, center_prototypes, close_center_pairs,
-                                 majority_labels, merge_centers)
+                                 majority_labels, merge_labels)
 from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs,
                                dominant_plane, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
@@ -249,13 +249,13 @@ class Pipeline:
             if merging:
                 pairs.append(run.close_centers(net_xyz, centers, seen[0], center_embedding, cfg))
         if merging:
-            group = merge_centers(len(centers), np.concatenate(pairs))
-            net_labels = np.concatenate([[0], group + 1]).astype(np.int32)[net_labels]
+            net_labels = merge_labels(net_labels, len(centers), np.concatenate(pairs))
         # 6b. majority vote over the network's own neighbourhood graph (label_smoothing passes)
-        for _ in range(cfg.label_smoothing if runs else 0):
+        if cfg.label_smoothing and runs:
             rows = np.concatenate([run.core for run in runs])
-            net_labels[rows] = majority_labels(
-                net_labels, rows, np.concatenate([run.neighbours for run in runs]))
+            graph = np.concatenate([run.neighbours for run in runs])
+            for _ in range(cfg.label_smoothing):
+                net_labels[rows] = majority_labels(net_labels, rows, graph)
         clock.lap("cluster")
 
         # 7. labels back to every input point; drop small instances; centroids

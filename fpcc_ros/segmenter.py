@@ -182,7 +182,7 @@ class SegmenterNode(Node):
 
     # ---- parameters -------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
-        """Card-derived defaults (part_radius, θ, γ, gate, merge) come from the card of the model
+        """Card-derived defaults (part_radius, θ, γ, gate, merge, prototype) come from the card of the model
         the node starts with (`-p model:=...`), so a per-part model runs with its own
         calibration unless a parameter says otherwise."""
         from fpcc_ros.model_card import card_path_for, load_card, ModelCardError
