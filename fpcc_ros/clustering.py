@@ -149,10 +149,12 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
 
 # The loss pulls points of one instance within eps1 of each other in feature space.
 PULL_MARGIN = 0.5
+PROTOTYPE_ROWS = 16_384  # a prototype is a mean: beyond this many rows, a uniform sample
 
 
 def center_prototypes(xyz: np.ndarray, embedding: np.ndarray, center_rows: np.ndarray,
-                      radius: float, pull: float = PULL_MARGIN) -> np.ndarray:
+                      radius: float, pull: float = PULL_MARGIN,
+                      max_rows: int = PROTOTYPE_ROWS) -> np.ndarray:
     """(m, D) embedding standing for each center: the mean over the points within ``radius``
     of it in 3D whose embeddings lie within ``pull`` of the center's own.
 
@@ -162,26 +164,34 @@ def center_prototypes(xyz: np.ndarray, embedding: np.ndarray, center_rows: np.nd
     instance's embedding with the noise averaged out; neighbours of another part (beyond eps2)
     are left out. ``xyz`` and ``embedding`` are one network pass's rows; ``center_rows`` index
     them. radius 0 gives the centers' own embeddings.
+
+    A pass of more than ``max_rows`` rows (full resolution: every valid point through the
+    network) is sampled with a uniform stride: the mean of ~100 of a center's neighbours
+    estimates it as well as the mean of ~1,000, at a tenth of the cost (100k rows: 5.6 ms ->
+    under 1 ms). Passes of the voxel-downsampled path (2-16k rows) use every row.
     """
     own = np.asarray(embedding[center_rows], dtype=np.float32)
     if radius <= 0 or len(center_rows) == 0:
         return own
+    stride = max(1, -(-len(xyz) // max_rows))
     own_sq = np.einsum("ij,ij->i", own, own)
     sums = np.zeros_like(own)
     counts = np.zeros(len(own), np.float32)
+    sample_xyz, sample_emb = xyz[::stride], embedding[::stride]
     with single_thread_blas():
-        for start, near, within in _chunk_neighbourhoods(xyz, xyz[center_rows], radius):
+        for start, near, within in _chunk_neighbourhoods(sample_xyz, xyz[center_rows], radius):
             rows = np.flatnonzero(within.any(axis=0))
             if len(rows) == 0:
                 continue
-            e = np.asarray(embedding[start + rows], dtype=np.float32)
+            e = np.asarray(sample_emb[start + rows], dtype=np.float32)
             feature_sq = (np.einsum("ij,ij->i", e, e)[:, None]
                           - 2.0 * _center_products(e, own[near]) + own_sq[near])  # (rows, m)
             weight = (within[:, rows].T & (feature_sq <= pull * pull)).astype(np.float32)
             sums[near] += weight.T @ e
             counts[near] += weight.sum(axis=0)
-    # each center is its own neighbour (distance 0), so no count is 0
-    return sums / counts[:, None]
+    # unsampled, each center is its own neighbour (distance 0); sampled, one may have no like
+    # neighbour among the sample, and keeps its own embedding
+    return np.where(counts[:, None] > 0, sums / np.maximum(counts, 1.0)[:, None], own)
 
 
 def assign_reference(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray,

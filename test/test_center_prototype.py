@@ -93,3 +93,31 @@ def test_chunked_prototypes_match_the_dense_definition(monkeypatch):
             (np.linalg.norm(emb - emb[c], axis=1) <= 0.5)
         assert take.sum() > 5
         np.testing.assert_allclose(row, emb[take].mean(axis=0), atol=1e-5)
+
+
+def test_large_passes_average_a_uniform_sample():
+    """Beyond max_rows the mean runs over every stride-th row (the dense definition on that
+    sample), and it stays close to the mean over all rows."""
+    rng = np.random.default_rng(5)
+    owner = rng.integers(0, 4, 4000)
+    xyz = rng.uniform(0, 1, (4, 3))[owner] + rng.normal(0, 0.03, (4000, 3))
+    emb = rng.normal(0, 2, (4, 16))[owner] + rng.normal(0, 0.08, (4000, 16))
+    centers = np.array([np.flatnonzero(owner == i)[0] for i in range(4)])
+    full = center_prototypes(xyz, emb, centers, radius=0.08)
+    got = center_prototypes(xyz, emb, centers, radius=0.08, max_rows=1000)   # stride 4
+    sample = np.arange(0, 4000, 4)
+    for row, c in zip(got, centers):
+        take = sample[(np.linalg.norm(xyz[sample] - xyz[c], axis=1) <= 0.08)
+                      & (np.linalg.norm(emb[sample] - emb[c], axis=1) <= 0.5)]
+        assert len(take) > 5
+        np.testing.assert_allclose(row, emb[take].mean(axis=0), atol=1e-5)
+    assert np.abs(got - full).max() < 0.1 and not np.allclose(got, full)
+
+
+def test_a_center_with_no_like_row_in_the_sample_keeps_its_own_embedding():
+    xyz = np.zeros((10, 3))
+    emb = np.zeros((10, 4))
+    emb[1] = [3.0, 0, 0, 0]     # row 1 is a center unlike every sampled row (0, 2, 4, ...)
+    got = center_prototypes(xyz, emb, np.array([1, 2]), radius=0.1, max_rows=5)
+    np.testing.assert_allclose(got[0], emb[1])
+    np.testing.assert_allclose(got[1], 0.0)
