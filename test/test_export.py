@@ -246,3 +246,38 @@ def test_init_default_is_the_shipped_models_weights():
     assert NetConfig.from_dict(state["net"]).embedding_dim == card.embedding_dim
     assert (saved["k"], saved["knn_near"], saved["knn_reach"], saved["block_size"]) == \
         (card.k, card.knn_near, card.knn_reach, card.block_size)
+
+
+def test_precision_auto_follows_the_cpu(monkeypatch):
+    from fpcc_ros.training.train import resolve_precision
+
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
+    assert resolve_precision("auto") == "fp32"
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True, raising=False)
+    assert resolve_precision("auto") == "bf16"
+    assert resolve_precision("fp32") == "fp32"
+    with pytest.raises(ValueError, match="precision 'fp16' is not one of"):
+        resolve_precision("fp16")
+
+
+def test_bf16_training_runs_in_bf16_and_matches_fp32_closely(scenes, tmp_path):
+    runs = {}
+    for precision in ("fp32", "bf16"):
+        config = TrainConfig(**{**TINY_CONFIG.__dict__, "precision": precision})
+        summary = train(config, [scenes / "train"], tmp_path / precision, progress=False)
+        assert summary["precision"] == precision
+        state = load_checkpoint(tmp_path / precision / "checkpoint_last.pt")
+        assert state["config"]["precision"] == precision      # a resumed run keeps it
+        runs[precision] = (summary["last"]["loss"], state["model"])
+    (loss32, w32), (loss16, w16) = runs["fp32"], runs["bf16"]
+    assert np.isfinite(loss16) and loss16 == pytest.approx(loss32, rel=0.05)
+    moved = max((w16[k].float() - w32[k].float()).abs().max().item() for k in w32
+                if w32[k].is_floating_point())
+    assert moved > 0          # autocast really ran: rounding changed the updates
+
+
+def test_checkpoints_from_before_the_precision_option_resume_in_fp32():
+    body = TINY_CONFIG.to_dict()
+    del body["precision"]
+    assert TrainConfig.from_dict(body).precision == "fp32"
