@@ -57,6 +57,7 @@ class CalibrationRow:
     screening_factor: float = 1.0
     center_merge: float = 0.0
     center_prototype: float = 0.0
+    voxel_factor: float = 0.1
 
     @property
     def f1(self) -> float:
@@ -66,16 +67,20 @@ class CalibrationRow:
 
 def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               gates: list[float], progress=None, screening_factors: list[float] | None = None,
-              merges: list[float] | None = None,
-              prototypes: list[float] | None = None) -> list[CalibrationRow]:
+              merges: list[float] | None = None, prototypes: list[float] | None = None,
+              voxel_factors: list[float] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, summed over ``scenes``;
-    ``screening_factors`` / ``merges`` / ``prototypes`` None keep the card's γ / center_merge /
-    center_prototype."""
+    ``screening_factors`` / ``merges`` / ``prototypes`` / ``voxel_factors`` None keep the
+    card's γ / center_merge / center_prototype / voxel_factor.
+
+    Each voxel factor runs the network again on every scene (what it sees changes); the other
+    settings reuse its outputs."""
     factors = screening_factors or [model.card.screening_factor]
     merges = merges if merges is not None else [model.card.center_merge]
     prototypes = prototypes if prototypes is not None else [model.card.center_prototype]
+    voxels = voxel_factors or [model.card.voxel_factor]
     rows = {key: InstanceCounts()
-            for key in itertools.product(thresholds, gates, factors, merges, prototypes)}
+            for key in itertools.product(thresholds, gates, factors, merges, prototypes, voxels)}
     memo = _MemoModel(model)
     inputs: dict = {}
     for path in (progress(scenes) if progress else scenes):
@@ -87,11 +92,12 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
             if scene["points"].ndim == 3 else 300
         memo._cache.clear()
         inputs.clear()
+        radius = float(scene["part_radius"])
         for key in rows:
-            t, g, f, m, p = key
-            cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
-                                           score_threshold=t, feature_gate=g, screening_factor=f,
-                                           center_merge=m, center_prototype=p)
+            t, g, f, m, p, v = key
+            cfg = PipelineConfig.from_card(model.card, part_radius=radius, score_threshold=t,
+                                           feature_gate=g, screening_factor=f, center_merge=m,
+                                           center_prototype=p, voxel_factor=v)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
             rows[key] += scene_counts(labels[finite], gt[finite], "visible", limit)
-    return [CalibrationRow(t, g, c, f, m, p) for (t, g, f, m, p), c in rows.items()]
+    return [CalibrationRow(t, g, c, f, m, p, v) for (t, g, f, m, p, v), c in rows.items()]

@@ -62,12 +62,14 @@ def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
     write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
     assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
                  "--thresholds", "0.2", "0.4", "--gates", "1.5", "--screening", "0.7",
-                 "--merges", "0.25", "--prototypes", "0.4", "--write"]) == 0
+                 "--merges", "0.25", "--prototypes", "0.4", "--voxel-factors", "0.12",
+                 "--write"]) == 0
     card = json.loads((tmp_path / "m.json").read_text())
     chosen = card["metrics"]["calibration"]
     assert card["score_threshold"] == chosen["score_threshold"] in (0.2, 0.4)
     assert (card["feature_gate"], card["screening_factor"], card["center_merge"],
-            card["center_prototype"]) == (1.5, 0.7, 0.25, 0.4)
+            card["center_prototype"], card["voxel_factor"]) == (1.5, 0.7, 0.25, 0.4, 0.12)
+    assert chosen["voxel_factor"] == 0.12
     assert f"F1 {chosen['f1']:.3f} on 1 scenes" in capsys.readouterr().out
 
     assert fpcc(["calibrate", str(tmp_path / "missing.onnx"), "--data", str(tmp_path / "val")]) == 2
@@ -90,8 +92,8 @@ def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
         write_scene(scenes[-1], parts, extra=FLOOR, part_radius=0.05)
     model = FpccModel(TINY_MODEL, threads=1)
     rows = calibrate(model, scenes, [0.2, 0.5], [1.0, 3.0], screening_factors=[0.5],
-                     merges=[0.0, 1.0], prototypes=[0.0, 0.6])
-    assert len(rows) == 16
+                     merges=[0.0, 1.0], prototypes=[0.0, 0.6], voxel_factors=[0.05, 0.1])
+    assert len(rows) == 32 and {r.voxel_factor for r in rows} == {0.05, 0.1}
     for row in rows:
         want = None
         for path in scenes:
@@ -100,9 +102,15 @@ def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
                                            score_threshold=row.score_threshold,
                                            feature_gate=row.feature_gate, screening_factor=0.5,
                                            center_merge=row.center_merge,
-                                           center_prototype=row.center_prototype)
+                                           center_prototype=row.center_prototype,
+                                           voxel_factor=row.voxel_factor)
             labels = Pipeline(model, cfg).segment(scene["points"]).labels
             counts = scene_counts(labels, scene["instance"], "visible", 300)
             want = counts if want is None else want + counts
         assert row.counts == want, (row.score_threshold, row.feature_gate, row.center_merge,
-                                    row.center_prototype)
+                                    row.center_prototype, row.voxel_factor)
+    # the voxel size matters here (else the sweep over it proves nothing)
+    by_voxel = {v: sum((r.counts for r in rows if r.voxel_factor == v
+                        and r.score_threshold == 0.2), start=type(rows[0].counts)())
+                for v in (0.05, 0.1)}
+    assert by_voxel[0.05] != by_voxel[0.1]

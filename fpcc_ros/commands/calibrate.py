@@ -24,6 +24,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prototypes", type=float, nargs="+", default=[0.0, 0.3, 0.6],
                         help="center_prototype values to try (part radii; 0 = the center "
                         "point's own embedding)")
+    parser.add_argument("--voxel-factors", type=float, nargs="+", default=None, metavar="F",
+                        help="voxel sizes to try, as fractions of the part radius (default: the "
+                        "card's only). Each runs the network again on every scene; a finer "
+                        "voxel gives thin or elongated parts more points and costs time "
+                        "(0.08 instead of 0.1: ~1.5x the points)")
     parser.add_argument("--limit", type=int, default=0, help="use only the first N scenes")
     parser.add_argument("--write", action="store_true", help="put the best values in the card")
 
@@ -54,29 +59,31 @@ def run(args: argparse.Namespace) -> int:
         return 2
     rows = calibrate(model, scenes, args.thresholds, args.gates, progress=tqdm,
                      screening_factors=args.screening, merges=args.merges,
-                     prototypes=args.prototypes)
+                     prototypes=args.prototypes, voxel_factors=args.voxel_factors)
     rows.sort(key=lambda r: -r.f1)
-    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'P':>6} {'R':>6} "
-          f"{'F1':>6}")
+    print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'voxel':>6} "
+          f"{'P':>6} {'R':>6} {'F1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
-              f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.counts.precision:>6.3f} "
-              f"{r.counts.recall:>6.3f} {r.f1:>6.3f}")
+              f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.voxel_factor:>6.3f} "
+              f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f}")
     best = rows[0]
     print(f"best: score_threshold {best.score_threshold}, feature_gate {best.feature_gate}, "
           f"screening_factor {best.screening_factor}, center_merge {best.center_merge}, "
-          f"center_prototype {best.center_prototype} (F1 {best.f1:.3f} on {len(scenes)} scenes)")
+          f"center_prototype {best.center_prototype}, voxel_factor {best.voxel_factor} "
+          f"(F1 {best.f1:.3f} on {len(scenes)} scenes)")
     if args.write:
         path = card_path_for(args.model)
         card = json.loads(path.read_text())
         card["score_threshold"], card["feature_gate"] = best.score_threshold, best.feature_gate
         card["screening_factor"], card["center_merge"] = best.screening_factor, best.center_merge
         card["center_prototype"] = best.center_prototype
+        card["voxel_factor"] = best.voxel_factor   # also the density of fine-tuning from it
         card.setdefault("metrics", {})["calibration"] = {
             "scenes": [str(s) for s in scenes], "protocol": "visible",
             "score_threshold": best.score_threshold, "feature_gate": best.feature_gate,
             "screening_factor": best.screening_factor, "center_merge": best.center_merge,
-            "center_prototype": best.center_prototype,
+            "center_prototype": best.center_prototype, "voxel_factor": best.voxel_factor,
             "precision": best.counts.precision, "recall": best.counts.recall, "f1": best.f1}
         path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"wrote {path}")
