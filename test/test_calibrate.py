@@ -72,6 +72,9 @@ def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
     assert chosen["voxel_factor"] == 0.12
     assert f"F1 {chosen['f1']:.3f} on 1 scenes" in capsys.readouterr().out
 
+    assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
+                 "--voxel-factors", "0.1", "0"]) == 2
+    assert "every value must be > 0" in capsys.readouterr().err
     assert fpcc(["calibrate", str(tmp_path / "missing.onnx"), "--data", str(tmp_path / "val")]) == 2
     assert "missing.onnx" in capsys.readouterr().err
     assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "nothing")]) == 2

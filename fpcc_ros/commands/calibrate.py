@@ -45,6 +45,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc calibrate: --data {' '.join(missing)}: no such file or folder",
               file=sys.stderr)
         return 2
+    if args.voxel_factors and min(args.voxel_factors) <= 0:
+        print(f"fpcc calibrate: --voxel-factors {' '.join(map(str, args.voxel_factors))}: every "
+              "value must be > 0 (a fraction of the part radius, e.g. 0.1 0.08)", file=sys.stderr)
+        return 2
     scenes = sorted(p for d in args.data for p in (d.rglob("*.npz") if d.is_dir() else [d]))
     if args.limit:
         scenes = scenes[:args.limit]
