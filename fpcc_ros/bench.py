@@ -681,20 +681,15 @@ class BenchReport:
             p = self.postprocess
             lines.append(f"NMS + clustering alone: {p['points']} points, {p['gt_instances']} GT "
                          f"instances, {p['candidates']} candidates -> {p['centers']} centers: NMS "
-                         f"{_pair(p['nms_ms']['median'], p['nms_ms']['p90'])} ms, clustering "
-                         f"(prototypes {p.get('center_prototype', 0)}, merge "
-                         f"{p.get('center_merge', 0)}) "
-                         f"{_pair(p['assign_ms']['median'], p['assign_ms']['p90'])} ms, total "
-                         f"{_pair(p['total_ms']['median'], p['total_ms']['p90'])} ms (median/p90); "
-                         f"P {p['accuracy']['precision']:.3f} R {p['accuracy']['recall']:.3f}")
+                         f"{_stat(p['nms_ms'])} ms, clustering (prototypes "
+                         f"{p.get('center_prototype', 0)}, merge {p.get('center_merge', 0)}) "
+                         f"{_stat(p['assign_ms'])} ms, total {_stat(p['total_ms'])} ms "
+                         f"(median/p90); {_accuracy(p)}")
             if p.get("paper_rule"):
                 q = p["paper_rule"]
                 lines.append(f"  with the paper's clustering (own center embeddings, no merging):"
-                             f" NMS {_pair(q['nms_ms']['median'], q['nms_ms']['p90'])} ms, "
-                             f"assignment {_pair(q['assign_ms']['median'], q['assign_ms']['p90'])}"
-                             f" ms, total {_pair(q['total_ms']['median'], q['total_ms']['p90'])} "
-                             f"ms; P {q['accuracy']['precision']:.3f} R "
-                             f"{q['accuracy']['recall']:.3f}")
+                             f" NMS {_stat(q['nms_ms'])} ms, assignment {_stat(q['assign_ms'])}"
+                             f" ms, total {_stat(q['total_ms'])} ms; {_accuracy(q)}")
         growth = self.growth()
         if growth:
             lines.append(f"{growth['from_parts']} -> {growth['to_parts']} parts: end to end "
@@ -763,6 +758,15 @@ def _short(stage: str) -> str:
 
 def _pair(median: float, p90: float) -> str:
     return f"{median:.0f}/{p90:.0f}" if median >= 10 else f"{median:.1f}/{p90:.1f}"
+
+
+def _stat(quantiles: dict[str, float]) -> str:
+    """A ``_quantiles`` dict as median/p90."""
+    return _pair(quantiles["median"], quantiles["p90"])
+
+
+def _accuracy(case: dict[str, Any]) -> str:
+    return f"P {case['accuracy']['precision']:.3f} R {case['accuracy']['recall']:.3f}"
 
 
 def machine_info(pipeline: Any) -> dict[str, Any]:

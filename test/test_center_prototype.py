@@ -82,35 +82,42 @@ def test_chunked_prototypes_match_the_dense_definition(monkeypatch):
     import fpcc_ros.clustering as clustering
 
     monkeypatch.setattr(clustering, "ROW_CHUNK", 64)   # many chunks, centers across them
-    rng = np.random.default_rng(3)
-    owner = rng.integers(0, 5, 1000)
-    xyz = rng.uniform(0, 1, (5, 3))[owner] + rng.normal(0, 0.03, (1000, 3))
-    emb = rng.normal(0, 2, (5, 16))[owner] + rng.normal(0, 0.12, (1000, 16))
-    centers = np.array([np.flatnonzero(owner == i)[0] for i in range(5)])
+    xyz, emb, centers = clustered_parts(seed=3, parts=5, points=1000, noise=0.12)
     got = center_prototypes(xyz, emb, centers, radius=0.08)
     for row, c in zip(got, centers):
-        take = (np.linalg.norm(xyz - xyz[c], axis=1) <= 0.08) & \
-            (np.linalg.norm(emb - emb[c], axis=1) <= 0.5)
-        assert take.sum() > 5
-        np.testing.assert_allclose(row, emb[take].mean(axis=0), atol=1e-5)
+        np.testing.assert_allclose(row, dense_prototype(xyz, emb, c, np.arange(1000)), atol=1e-5)
+
+
+def clustered_parts(seed: int, parts: int, points: int, noise: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points in ``parts`` tight 3D clusters with one embedding direction each, and the first
+    row of each part as its center."""
+    rng = np.random.default_rng(seed)
+    owner = rng.integers(0, parts, points)
+    xyz = rng.uniform(0, 1, (parts, 3))[owner] + rng.normal(0, 0.03, (points, 3))
+    emb = rng.normal(0, 2, (parts, 16))[owner] + rng.normal(0, noise, (points, 16))
+    return xyz, emb, np.array([np.flatnonzero(owner == i)[0] for i in range(parts)])
+
+
+def dense_prototype(xyz: np.ndarray, emb: np.ndarray, center: int, rows: np.ndarray,
+                    radius: float = 0.08) -> np.ndarray:
+    """The definition, over ``rows``: the mean embedding of those within ``radius`` of the
+    center in 3D and within 0.5 of its embedding."""
+    take = rows[(np.linalg.norm(xyz[rows] - xyz[center], axis=1) <= radius)
+                & (np.linalg.norm(emb[rows] - emb[center], axis=1) <= 0.5)]
+    assert len(take) > 5
+    return emb[take].mean(axis=0)
 
 
 def test_large_passes_average_a_uniform_sample():
     """Beyond max_rows the mean runs over every stride-th row (the dense definition on that
     sample), and it stays close to the mean over all rows."""
-    rng = np.random.default_rng(5)
-    owner = rng.integers(0, 4, 4000)
-    xyz = rng.uniform(0, 1, (4, 3))[owner] + rng.normal(0, 0.03, (4000, 3))
-    emb = rng.normal(0, 2, (4, 16))[owner] + rng.normal(0, 0.08, (4000, 16))
-    centers = np.array([np.flatnonzero(owner == i)[0] for i in range(4)])
+    xyz, emb, centers = clustered_parts(seed=5, parts=4, points=4000, noise=0.08)
     full = center_prototypes(xyz, emb, centers, radius=0.08)
     got = center_prototypes(xyz, emb, centers, radius=0.08, max_rows=1000)   # stride 4
-    sample = np.arange(0, 4000, 4)
     for row, c in zip(got, centers):
-        take = sample[(np.linalg.norm(xyz[sample] - xyz[c], axis=1) <= 0.08)
-                      & (np.linalg.norm(emb[sample] - emb[c], axis=1) <= 0.5)]
-        assert len(take) > 5
-        np.testing.assert_allclose(row, emb[take].mean(axis=0), atol=1e-5)
+        np.testing.assert_allclose(row, dense_prototype(xyz, emb, c, np.arange(0, 4000, 4)),
+                                   atol=1e-5)
     assert np.abs(got - full).max() < 0.1 and not np.allclose(got, full)
 
 
