@@ -253,8 +253,10 @@ def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_m
     if len(center_xyz) < 2:
         return np.zeros((0, 2), np.int64)
     near = np.linalg.norm(center_xyz[:, None] - center_xyz[None], axis=2) < 2 * d_max
-    alike = np.linalg.norm(center_embedding[:, None] - center_embedding[None],
-                           axis=2) < max_distance
+    # |a - b|^2 from the Gram matrix: (m, m) work instead of (m, m, D)
+    e = np.asarray(center_embedding, dtype=np.float64)
+    sq = np.einsum("ij,ij->i", e, e)
+    alike = sq[:, None] + sq[None] - 2.0 * (e @ e.T) < max_distance * max_distance
     i, j = np.nonzero(np.triu(near & alike, k=1))
     return np.stack([i, j], axis=1)
 
