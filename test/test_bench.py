@@ -211,3 +211,20 @@ def test_postprocess_case_shows_the_paper_rule_beside_extra_clustering_steps(tin
     assert "with the paper's clustering" in report.summary()
     again = bench.report_from_json(json.loads(json.dumps(report.to_json())))
     assert again.summary() == report.summary()
+
+
+def test_postprocess_case_uses_fixed_nms_settings_not_the_cards(tiny_scene, tiny_pipeline):
+    """The NMS + clustering figure must compare across calibrations: a card with another θ/γ
+    changes the gate and clustering steps only, not which centers the case times."""
+    import copy
+
+    pipeline = copy.copy(tiny_pipeline)
+    pipeline.config = tiny_pipeline.config.replace(score_threshold=0.95, screening_factor=3.0)
+    report = bench.run_bench(pipeline, tiny_scene[:1], runs=1, postprocess_scene=tiny_scene[0])
+    post = report.postprocess
+    assert post["score_threshold"] == bench.POSTPROCESS_SCORE_THRESHOLD != 0.95
+    assert post["screening_factor"] == bench.POSTPROCESS_SCREENING_FACTOR != 3.0
+    at_card = bench.measure_postprocess(bench.postprocess_case(tiny_scene[0]), 1, 0.95, 3.0,
+                                        pipeline.config.feature_gate)
+    assert post["centers"] > at_card["centers"]
+    assert f"θ {bench.POSTPROCESS_SCORE_THRESHOLD}" in report.summary()
