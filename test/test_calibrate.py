@@ -70,7 +70,9 @@ def test_cli_writes_the_best_combination_into_the_card(tmp_path, capsys):
     assert (card["feature_gate"], card["screening_factor"], card["center_merge"],
             card["center_prototype"], card["voxel_factor"]) == (1.5, 0.7, 0.25, 0.4, 0.12)
     assert chosen["voxel_factor"] == 0.12
-    assert f"F1 {chosen['f1']:.3f} on 1 scenes" in capsys.readouterr().out
+    assert chosen["objective"] == "part-mean" and chosen["parts"] == 1
+    assert f"pooled F1 {chosen['f1']:.3f}, mean part F1 {chosen['f1']:.3f}; 1 scenes" in \
+        capsys.readouterr().out
 
     assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
                  "--voxel-factors", "0.1", "0"]) == 2
@@ -89,17 +91,17 @@ def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
     from fpcc_ros.metrics import scene_counts
     from fpcc_ros.pipeline import Pipeline, PipelineConfig
 
-    scenes = []
+    scenes, names = [], ["nut", "nut", "shaft"]
     for i, parts in enumerate((ROW, ROW[1:], [ROW[0] + [0, 0, 0.01], ROW[2]])):
         scenes.append(tmp_path / f"s{i}.npz")
-        write_scene(scenes[-1], parts, extra=FLOOR, part_radius=0.05)
+        write_scene(scenes[-1], parts, extra=FLOOR, part_radius=0.05, part_name=names[i])
     model = FpccModel(TINY_MODEL, threads=1)
     rows = calibrate(model, scenes, [0.2, 0.5], [1.0, 3.0], screening_factors=[0.5],
                      merges=[0.0, 1.0], prototypes=[0.0, 0.6], voxel_factors=[0.05, 0.1])
     assert len(rows) == 32 and {r.voxel_factor for r in rows} == {0.05, 0.1}
     for row in rows:
-        want = None
-        for path in scenes:
+        want, by_part = None, {}
+        for path, name in zip(scenes, names):
             scene = np.load(path)
             cfg = PipelineConfig.from_card(model.card, part_radius=float(scene["part_radius"]),
                                            score_threshold=row.score_threshold,
@@ -110,6 +112,8 @@ def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
             labels = Pipeline(model, cfg).segment(scene["points"]).labels
             counts = scene_counts(labels, scene["instance"], "visible", 300)
             want = counts if want is None else want + counts
+            by_part[name] = by_part[name] + counts if name in by_part else counts
+        assert row.part_counts == by_part
         assert row.counts == want, (row.score_threshold, row.feature_gate, row.center_merge,
                                     row.center_prototype, row.voxel_factor)
     # the voxel size matters here (else the sweep over it proves nothing)
@@ -117,3 +121,25 @@ def test_reused_block_inputs_give_the_plain_pipelines_counts(tmp_path):
                         and r.score_threshold == 0.2), start=type(rows[0].counts)())
                 for v in (0.05, 0.1)}
     assert by_voxel[0.05] != by_voxel[0.1]
+
+
+def test_part_mean_objective_counts_every_part_once():
+    """Hand-computed: a part with many instances dominates the pooled F1, not the part mean."""
+    from fpcc_ros.calibrate import CalibrationRow
+    from fpcc_ros.metrics import InstanceCounts
+
+    nuts = InstanceCounts(true_positives=8, predictions=10, ground_truths=10)    # F1 0.8
+    shafts = InstanceCounts(true_positives=1, predictions=2, ground_truths=4)    # F1 1/3
+    row = CalibrationRow(0.5, 1.0, nuts + shafts, part_counts={"nut": nuts, "shaft": shafts})
+    assert abs(row.part_mean_f1 - (0.8 + 1 / 3) / 2) < 1e-12
+    # pooled: P 9/12, R 9/14
+    assert abs(row.f1 - 2 * (9 / 12) * (9 / 14) / (9 / 12 + 9 / 14)) < 1e-12
+    assert row.score("part-mean") == row.part_mean_f1 and row.score("pooled") == row.f1
+    # a setting better for the shafts, worse for the nuts, wins only on the part mean
+    fair = CalibrationRow(0.5, 1.0, InstanceCounts(6, 10, 10) + InstanceCounts(3, 4, 4),
+                          part_counts={"nut": InstanceCounts(6, 10, 10),
+                                       "shaft": InstanceCounts(3, 4, 4)})
+    assert fair.score("part-mean") > row.score("part-mean")
+    assert fair.score("pooled") < row.score("pooled")
+    # scenes without part names: one group, the pooled F1
+    assert CalibrationRow(0.5, 1.0, nuts).part_mean_f1 == CalibrationRow(0.5, 1.0, nuts).f1

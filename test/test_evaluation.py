@@ -29,7 +29,8 @@ FLOOR = grid((-0.04, -0.04, 1.0), (0.21, 0.21, 1.0), 0.005)          # 51 x 51 =
 ROW = [patch(0.0, 0.05, 0.98), patch(0.065, 0.05, 0.97), patch(0.13, 0.05, 0.985)]
 
 
-def write_scene(path: Path, parts, *, extra=None, organized=None, part_radius=0.05) -> np.ndarray:
+def write_scene(path: Path, parts, *, extra=None, organized=None, part_radius=0.05,
+                part_name: str | None = None) -> np.ndarray:
     """Scene NPZ from parts (labels 1..K); ``extra`` points get label 0. Organized scenes are
     padded with NaN pixels to H*W. Returns the flat ground-truth labels as written."""
     chunks = list(parts) + ([extra] if extra is not None else [])
@@ -41,8 +42,9 @@ def write_scene(path: Path, parts, *, extra=None, organized=None, part_radius=0.
         pad = h * w - len(xyz)
         xyz = np.concatenate([xyz, np.full((pad, 3), np.nan, np.float32)]).reshape(h, w, 3)
         gt = np.concatenate([gt, np.zeros(pad, np.int32)]).reshape(h, w)
+    named = {} if part_name is None else {"part_name": np.str_(part_name)}
     np.savez(path, points=xyz, instance=gt, center_score=np.zeros(gt.shape, np.float32),
-             part_radius=np.float32(part_radius))
+             part_radius=np.float32(part_radius), **named)
     return gt.reshape(-1)
 
 
