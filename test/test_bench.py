@@ -118,6 +118,18 @@ def test_report_growth_linearity_and_goals():
     assert e2e["value"] == 150 and e2e["ok"] is True
     acc = next(x for k, x in goals.items() if k.startswith("precision/recall vs full"))
     assert acc["value"] == pytest.approx(5.0) and acc["ok"] is False  # recall 0.90 vs 0.95
+    loss = goals["  the same, loss only (fast path below full resolution)"]
+    assert loss["value"] == pytest.approx(5.0) and loss["ok"] is False
+    # a fast path better than full resolution misses the two-sided goal but loses nothing
+    better = {"accuracy": {"true_positives": 10, "predictions": 20, "ground_truths": 20}}
+    report_better = bench.BenchReport(scenes=[
+        _run("b", "synth", 20, 200_000, [150], counts=fast, full=better)],
+        machine={}, model={}, config={}, runs=1)
+    better_goals = {x["goal"]: x for x in report_better.goals()}
+    assert better_goals["precision/recall vs full resolution, cluttered bins (points)"]["ok"] \
+        is False
+    loss = better_goals["  the same, loss only (fast path below full resolution)"]
+    assert loss["value"] == 0.0 and loss["ok"] is True
     growth = next(x for k, x in goals.items() if k.startswith("latency growth"))
     assert growth["ok"] is False
 
