@@ -19,6 +19,7 @@ from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs
 from fpcc_ros.model_card import ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
+from fpcc_ros.view import VIEW_AXES, detect_view_axis, to_camera
 
 AUTO_VOXEL = -1.0
 MAX_RANGE_M = 1.0e4  # coordinates beyond 10 km are sensor garbage: treated as no return
@@ -50,6 +51,9 @@ class PipelineConfig:
     block_halo: float = 0.5   # context around each block, in part radii (0.5: as accurate as 1.0 on our validation scenes, 25% faster)
     remove_floor: bool = True  # drop the dominant plane (floor around the tote) before the net
     max_points: int = 400_000  # guard: coarser voxels beyond this many network points (> VGA)
+    view_axis: str = "auto"   # the camera's viewing direction in the cloud's frame ("+z": an
+    #   optical frame; "-z": a z-up world/base frame, camera above the bin); "auto" tells them
+    #   apart per frame (fpcc_ros.view)
     block_split: str = "balanced"  # "balanced" (features.balanced_blocks: ceil(n / block_size)
     #   blocks, so fewer halos: -8% network points on 14 held-out scenes, same P/R) or "halving"
     #   (features.spatial_blocks, as in training: same block-size range, more blocks)
@@ -106,6 +110,9 @@ class PipelineConfig:
         need(isinstance(self.max_points, int) and self.max_points >= 1000, "max_points", ">= 1000")
         need(self.block_split in ("halving", "balanced"), "block_split",
              "'halving' or 'balanced'")
+        need(self.view_axis in VIEW_AXES, "view_axis",
+             f"one of {', '.join(VIEW_AXES)} (the direction the camera looks along in the "
+             "cloud's frame: +z for a camera optical frame, -z for a z-up world frame)")
         if self.roi_min is not None and self.roi_max is not None and \
                 any(lo >= hi for lo, hi in zip(self.roi_min, self.roi_max)):
             raise ConfigError(f"roi_min={list(self.roi_min)} must be below roi_max="
@@ -135,6 +142,7 @@ class SegmentationResult:
     num_valid: int
     num_network_points: int
     voxel_size: float = 0.0     # the voxel edge used (m); 0 = full resolution
+    view_axis: str = "+z"       # the camera's viewing direction the network was shown
     num_inferred_points: int = 0  # points run through the network, halos included
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -207,7 +215,10 @@ class Pipeline:
 
         # 2. voxel downsample; `inverse` carries every valid point to its representative
         keep, inverse, voxel = _bounded_downsample(pts, cfg.effective_voxel_size, cfg.max_points)
-        net_xyz = pts[keep]
+        # turned into the camera's view, as the network was trained (distances, and so NMS and
+        # clustering, are unchanged; labels and centroids stay in the cloud's frame)
+        view_axis = detect_view_axis(pts) if cfg.view_axis == "auto" else cfg.view_axis
+        net_xyz = to_camera(pts[keep], view_axis)
         clock.lap("downsample")
 
         # 2b. the floor around the tote (largest plane) carries no instance: skip it
@@ -270,6 +281,7 @@ class Pipeline:
         return SegmentationResult(labels=labels, center_score=center_score, centroids=centroids,
                                   point_counts=counts, num_valid=len(valid_idx),
                                   num_network_points=len(net_xyz), voxel_size=voxel,
+                                  view_axis=view_axis,
                                   num_inferred_points=sum(len(run.ext) for run in runs),
                                   timings_ms=clock.laps)
 

@@ -48,7 +48,7 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
                    "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype",
-                   "label_smoothing")
+                   "label_smoothing", "view_axis")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -114,6 +114,12 @@ PARAMS = (
            "Passes of majority vote over the network's neighbourhood graph after clustering: a "
            "point takes the label most of its neighbours carry (removes stray assignments "
            "across part boundaries). 0 = off.", 0, 5),
+    _Param("view_axis", ParameterType.PARAMETER_STRING,
+           "The direction the camera looks along in the cloud's frame: +z (a camera optical "
+           "frame), -z (a z-up world or robot-base frame, camera above the bin), +x, -x, +y, -y; "
+           "auto = +z when the points sit in front of the frame's origin as a camera sees them, "
+           "else -z. The network sees the cloud turned into the camera's view; outputs stay in "
+           "the cloud's frame."),
     _Param("threads", ParameterType.PARAMETER_INTEGER,
            "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
@@ -161,6 +167,7 @@ class SegmenterNode(Node):
         self._newest: tuple[PointCloud2, float] | None = None
         self._running = True
         self.stats = _Stats()
+        self._view_axes: dict[str, str] = {}   # frame_id -> the last view axis logged
 
         self._pub_cloud = self.create_publisher(
             PointCloud2, "segmented_points", OUTPUT_QOS,
@@ -203,6 +210,7 @@ class SegmenterNode(Node):
             "center_merge": card.center_merge if card else 0.0,
             "center_prototype": card.center_prototype if card else 0.0,
             "label_smoothing": PipelineConfig.label_smoothing,
+            "view_axis": PipelineConfig.view_axis,
             "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:
@@ -316,10 +324,23 @@ class SegmenterNode(Node):
             self._throttle.warn(f"err:{type(exc).__name__}",
                                 f"frame failed ({type(exc).__name__}: {exc}); continuing")
             return
+        self._note_view_axis(msg.header.frame_id, out.result.view_axis, pipeline.config.view_axis)
         self._pub_cloud.publish(out.cloud)
         self._pub_instances.publish(out.instances)
         self._pub_markers.publish(out.markers)
         self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
+
+    def _note_view_axis(self, frame_id: str, axis: str, setting: str) -> None:
+        """Log the camera direction the network was shown, once per frame and whenever it
+        changes: a wrong one (view_axis auto on an unusual frame) costs most of the accuracy."""
+        if self._view_axes.get(frame_id) == axis:
+            return
+        self._view_axes[frame_id] = axis
+        how = "detected (view_axis auto)" if setting == "auto" else "from view_axis"
+        self.get_logger().info(
+            f"frame '{frame_id}': the camera looks along {axis} ({how}); the network sees the "
+            "cloud turned into that view. Set -p view_axis:=+z (camera optical frame) or -z "
+            "(z-up world frame, camera above the bin) if this is wrong")
 
     def _age_s(self, msg: PointCloud2) -> float:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9

@@ -395,3 +395,25 @@ def test_a_model_given_at_start_up_brings_its_own_cards_settings(tmp_path):
                       "feature_gate": 2.5, "center_merge": 0.6, "center_prototype": 0.7}
     assert (cfg.part_radius, cfg.screening_factor, cfg.feature_gate, cfg.center_merge,
             cfg.center_prototype) == (0.0421, 0.45, 2.5, 0.6, 0.7)
+
+
+def test_view_axis_is_a_checked_parameter_and_each_frames_view_is_noted(live):
+    node = live.node
+    result = _set(node, view_axis="down")
+    assert not result.successful and "view_axis='down' is invalid" in result.reason
+    assert "-z for a z-up world frame" in result.reason
+    assert node.get_parameter("view_axis").value == "auto"
+
+    # auto: a camera's cloud is shown as it is, a z-up world frame's turned over
+    xyz = cf.scene_xyz(30, 40, seed=3, spheres=5)
+    world = np.stack([xyz[..., 0], -xyz[..., 1], 0.8 - xyz[..., 2]], axis=-1)  # floor at z = 0
+    assert live.segment(cf.make_cloud(xyz, "xyz32", frame_id="cam_optical")) is not None
+    assert live.segment(cf.make_cloud(world.astype(np.float32), "xyz32",
+                                      frame_id="world")) is not None
+    assert node._view_axes == {"cam_optical": "+z", "world": "-z"}
+
+    assert _set(node, view_axis="+z").successful
+    assert node._pipeline.config.view_axis == "+z"
+    assert live.segment(cf.make_cloud(world.astype(np.float32), "xyz32",
+                                      frame_id="world")) is not None
+    assert node._view_axes["world"] == "+z"

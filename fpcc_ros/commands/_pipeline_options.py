@@ -6,6 +6,7 @@ from typing import Any
 
 from fpcc_ros.onnx_model import FpccModel, default_model_path
 from fpcc_ros.pipeline import Pipeline, PipelineConfig
+from fpcc_ros.view import VIEW_AXES
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +26,11 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                        "stands for it (0 = the center point's own)")
     group.add_argument("--label-smoothing", type=int, default=None,
                        help="passes of kNN majority vote after clustering (0 = off; default 1)")
+    group.add_argument("--view-axis", default=None, choices=VIEW_AXES,
+                       help="the direction the camera looks along in the cloud's frame: +z for a "
+                       "camera optical frame (synth scenes), -z for a z-up world/base frame "
+                       "with the camera above the bin; auto (default) tells them apart from "
+                       "the points")
     group.add_argument("--roi-min", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--roi-max", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"))
     group.add_argument("--threads", type=int, default=0, help="onnxruntime threads (0 = all)")
@@ -47,7 +53,7 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
-             "roi_max")
+             "roi_max", "view_axis")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

@@ -242,7 +242,8 @@ def runtime_postprocess(scene: Scene, pred: ScenePrediction, config: TrainConfig
     runtime = PipelineConfig(part_radius=scene.part_radius, screening_factor=config.screening_factor,
                              score_threshold=config.score_threshold, feature_gate=config.feature_gate,
                              voxel_factor=config.data.voxel_factor, block_size=config.data.block_size,
-                             min_points=config.min_points, remove_floor=config.data.remove_floor)
+                             min_points=config.min_points, remove_floor=config.data.remove_floor,
+                             view_axis="+z")  # training scenes are in the camera frame
     pipeline = Pipeline(TorchBlockModel(pred.model, config), runtime)
     return pipeline.segment(scene.xyz).labels.astype(np.int32)
 
