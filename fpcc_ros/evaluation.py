@@ -54,9 +54,13 @@ class Scene:
             else VISIBLE_MIN_POINTS
 
 
-def load_scene(path: Path) -> Scene:
-    """Read a scene NPZ (``points``, ``instance``, ``part_radius``; other keys ignored)."""
+def load_scene(path: Path, columns: str | None = None) -> Scene:
+    """Read a scene NPZ (``points``, ``instance``, ``part_radius``; other keys ignored), or a
+    labelled text scene (``columns``: "paper" ``x y z center_score instance``, the default, or
+    "peer" ``x y z instance center_score``; no part radius: the caller fixes one)."""
     path = Path(path)
+    if path.suffix.lower() == ".txt":
+        return _load_text_scene(path, columns or "paper")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files if k in ("points", "instance", "part_radius")}
@@ -79,6 +83,21 @@ def load_scene(path: Path) -> Scene:
     return Scene(name=path.name, xyz=points.reshape(-1, 3).astype(np.float32, copy=False),
                  instance=instance.reshape(-1).astype(np.int64), part_radius=radius,
                  shape=tuple(points.shape[:-1]))
+
+
+def _load_text_scene(path: Path, columns: str) -> Scene:
+    from msg_tools.formats import FormatError, read_txt
+
+    try:
+        xyz, extra = read_txt(path, columns=columns)
+    except (FormatError, OSError) as exc:
+        raise SceneError(f"scene {path}: {exc}") from exc
+    if "instance" not in extra:
+        raise SceneError(f"scene {path}: no 'instance' column under columns={columns!r} (a text "
+                         "scene needs x y z and the instance label; --columns paper is x y z "
+                         "center_score instance, --columns peer is x y z instance center_score)")
+    return Scene(name=path.name, xyz=xyz, instance=extra["instance"].astype(np.int64),
+                 part_radius=None, shape=(len(xyz),))
 
 
 def default_tolerances(part_radius: float) -> list[float]:
@@ -283,10 +302,12 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
              protocols: Sequence[str] = PROTOCOLS, *, baseline: bool = True,
              fixed_part_radius: bool = False,
              progress: Callable[[Iterable], Iterable] | None = None,
-             warn: Callable[[str], None] | None = None) -> EvalReport:
+             warn: Callable[[str], None] | None = None,
+             columns: str | None = None) -> EvalReport:
     """Evaluate ``pipeline`` (anything with ``segment(xyz)`` and ``config``) and the baseline.
 
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
+    ``columns`` names the columns of .txt scenes (see :func:`load_scene`).
     ``tolerances`` None = :func:`default_tolerances` of the median part radius; ``baseline``
     False or an empty list skips the baseline. Scenes without any instance are skipped (listed
     in ``report.skipped`` and passed to ``warn``); :class:`EvalError` if none is left.
@@ -311,7 +332,7 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
                         model=_model_info(pipeline), config=_config_info(pipeline.config),
                         part_radius_source="fixed" if fixed_part_radius else "scene")
     for path in (progress or (lambda it: it))(paths):
-        scene = load_scene(path)
+        scene = load_scene(path, columns)
         if not (scene.instance > 0).any():
             reason = "no ground-truth instances (every 'instance' label is 0)"
             report.skipped.append((scene.name, reason))
@@ -367,6 +388,9 @@ def _scene_radius(path: Path, pipeline, fixed: bool) -> float:
         return float(pipeline.config.part_radius)
     if not path.is_file():
         raise SceneError(f"scene {path} does not exist")
+    if path.suffix.lower() == ".txt":
+        raise SceneError(f"scene {path}: a text scene has no part radius; give the part's d_max "
+                         "with --part-radius (`fpcc part-info MESH` prints it)")
     try:
         with np.load(path, allow_pickle=False) as z:
             if "part_radius" not in z.files:

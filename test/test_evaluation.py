@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from fpcc_ros.cli import main as cli_main
-from fpcc_ros.evaluation import EvalError, SceneError, default_tolerances, evaluate, f1_score
+from fpcc_ros.evaluation import (EvalError, SceneError, default_tolerances, evaluate, f1_score,
+                                 load_scene)
 from fpcc_ros.pipeline import PipelineConfig, SegmentationResult
 
 TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
@@ -227,7 +228,7 @@ def test_command_errors(tmp_path, capsys):
     assert "is not a directory" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     assert cli_main(["eval", "--data", str(tmp_path / "empty")]) == 2
-    assert "no scene .npz files" in capsys.readouterr().err
+    assert "no scene .npz or .txt files" in capsys.readouterr().err
 
 
 @needs_model
@@ -248,3 +249,53 @@ def test_command_errors_with_model(tmp_path, capsys):
     assert cli_main(["eval", "--data", str(tmp_path / "ok"), "--model", str(model)]) == 2
     err = capsys.readouterr().err
     assert "not an FPCC-Net matching its card" in err and "knn" in err
+
+
+def _as_text(npz: Path, txt: Path, columns: str) -> None:
+    """The NPZ scene's finite points as a labelled text scene in the named column order."""
+    z = np.load(npz)
+    xyz, gt = z["points"].reshape(-1, 3), z["instance"].reshape(-1)
+    keep = np.isfinite(xyz).all(axis=1)
+    score = np.full(keep.sum(), 0.5)
+    cols = [xyz[keep], score[:, None], gt[keep][:, None]] if columns == "paper" else \
+        [xyz[keep], gt[keep][:, None], score[:, None]]
+    np.savetxt(txt, np.hstack(cols), fmt="%.6f")
+
+
+def test_text_scenes_are_evaluated_like_their_npz_with_a_fixed_part_radius(tmp_path):
+    npz = tmp_path / "a.npz"
+    gt = write_scene(npz, ROW, extra=FLOOR)
+    for columns in ("paper", "peer"):
+        txt = tmp_path / f"a_{columns}.txt"
+        _as_text(npz, txt, columns)
+        scene = load_scene(txt, columns)
+        assert scene.part_radius is None and scene.shape == (len(gt),)
+        np.testing.assert_array_equal(scene.instance, gt)
+        pipeline = GroundTruthPipeline([gt])
+        from_text = evaluate([txt], pipeline, tolerances=[0.008], fixed_part_radius=True,
+                             columns=columns)
+        from_npz = evaluate([npz], pipeline, tolerances=[0.008])
+        assert from_text.fpcc_totals("visible") == from_npz.fpcc_totals("visible")
+        assert from_text.baseline_totals("visible", 0.008) == \
+            from_npz.baseline_totals("visible", 0.008)
+    # without a fixed radius: a clear error naming the fix
+    with pytest.raises(SceneError, match="text scene has no part radius.*--part-radius"):
+        evaluate([tmp_path / "a_peer.txt"], GroundTruthPipeline([gt]), columns="peer")
+    # x y z only: no labels to score against
+    np.savetxt(tmp_path / "xyz.txt", np.load(npz)["points"][:20], fmt="%.4f")
+    with pytest.raises(SceneError, match="no 'instance' column.*--columns peer"):
+        load_scene(tmp_path / "xyz.txt")
+
+
+def test_peer_generators_scene_evaluates_through_the_command(shared_dir, tmp_path, capsys):
+    """The third-party gear-shaft scene (z-up world frame, x y z instance center_score): read,
+    turned into the camera's view, scored against its 19 parts."""
+    data = tmp_path / "peer"
+    data.mkdir()
+    (data / "scene.txt").symlink_to(shared_dir / "data" / "peer" / "gear_shaft_scene_020.txt")
+    out = tmp_path / "r.json"
+    assert cli_main(["eval", "--data", str(data), "--columns", "peer", "--part-radius", "0.242",
+                     "--no-baseline", "--protocol", "visible", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["scenes"][0]["gt_instances"] == 19
+    assert report["totals"]["visible"]["fpcc"]["predictions"] > 0

@@ -18,7 +18,11 @@ SEGMENT_OUTPUT_SUFFIX = "_segmented.npz"  # written by `fpcc segment`: predictio
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",
-                        help="directory of scene NPZ files with ground truth (DESIGN.md §4)")
+                        help="directory of scene NPZ files with ground truth (DESIGN.md §4), or "
+                        "of labelled text scenes (.txt, with --part-radius)")
+    parser.add_argument("--columns", choices=["paper", "peer"], default="paper",
+                        help="columns of .txt scenes: paper = x y z center_score instance (the "
+                        "FPCC authors' format), peer = x y z instance center_score")
     parser.add_argument("--out", type=Path, default=None, metavar="REPORT.json",
                         help="JSON report (default: DIR/eval_<model stem>.json)")
     parser.add_argument("--limit", type=positive_int, default=None, metavar="N",
@@ -47,13 +51,15 @@ def run(args: argparse.Namespace) -> int:
     data: Path = args.data
     if not data.is_dir():
         return fail(f"--data {data} is not a directory; point it at a folder of scene .npz files")
-    scenes = sorted(p for p in data.glob("*.npz") if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
+    scenes = sorted(p for pattern in ("*.npz", "*.txt") for p in data.glob(pattern)
+                    if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
     ignored = sum(1 for p in data.glob("*" + SEGMENT_OUTPUT_SUFFIX))
     if ignored:
         print(f"ignoring {ignored} *{SEGMENT_OUTPUT_SUFFIX} file(s): `fpcc segment` outputs hold "
               "predictions, not ground truth", file=sys.stderr)
     if not scenes:
-        return fail(f"--data {data} holds no scene .npz files (make some with `fpcc synth`)")
+        return fail(f"--data {data} holds no scene .npz or .txt files (make some with `fpcc "
+                    "synth`)")
     if args.limit:
         scenes = scenes[:args.limit]
     protocols = ("paper", "visible") if args.protocol == "both" else (args.protocol,)
@@ -66,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
                           protocols=protocols, baseline=not args.no_baseline,
                           fixed_part_radius=args.part_radius is not None,
                           progress=lambda it: tqdm(it, desc="eval", unit="scene", file=sys.stderr),
-                          warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr))
+                          warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr),
+                          columns=args.columns)
     except (ModelLoadError, ConfigError, EvalError) as exc:
         return fail(str(exc))
 
