@@ -331,7 +331,7 @@ class SegmenterNode(Node):
         self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
 
     def _note_view_axis(self, frame_id: str, axis: str, setting: str) -> None:
-        """Log the camera direction the network was shown, once per frame and whenever it
+        """Log the camera direction the network was shown, once per frame id and whenever it
         changes: a wrong one (view_axis auto on an unusual frame) costs most of the accuracy."""
         if self._view_axes.get(frame_id) == axis:
             return
