@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fpcc_ros.evaluation import f1_score
 from fpcc_ros.metrics import InstanceCounts, scene_counts, visible_threshold
 from fpcc_ros.onnx_model import FpccModel
 from fpcc_ros.pipeline import Pipeline, PipelineConfig
@@ -49,14 +50,6 @@ class _MemoPipeline(Pipeline):
         return self._cache[key]
 
 
-OBJECTIVES = ("part-mean", "pooled")
-
-
-def _f1(counts: InstanceCounts) -> float:
-    p, r = counts.precision, counts.recall
-    return 2 * p * r / (p + r) if p + r else 0.0
-
-
 @dataclass
 class CalibrationRow:
     score_threshold: float
@@ -71,7 +64,7 @@ class CalibrationRow:
     @property
     def f1(self) -> float:
         """F1 of the counts pooled over every scene."""
-        return _f1(self.counts)
+        return f1_score(self.counts)
 
     @property
     def part_mean_f1(self) -> float:
@@ -84,7 +77,7 @@ class CalibrationRow:
         """
         if not self.part_counts:
             return self.f1
-        return float(np.mean([_f1(c) for c in self.part_counts.values()]))
+        return float(np.mean([f1_score(c) for c in self.part_counts.values()]))
 
     def score(self, objective: str) -> float:
         return self.part_mean_f1 if objective == "part-mean" else self.f1
