@@ -249,6 +249,7 @@ def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_m
     instance within eps1 (0.5) of each other and those of other instances within 2 d_max (the
     valid-distance matrix of the loss) beyond eps2 (1.0), so within 2 d_max the embedding
     distance tells the two cases apart. Embeddings must come from one network pass.
+    Pairs come most alike first: the order :func:`merge_centers` joins them in.
     """
     if len(center_xyz) < 2:
         return np.zeros((0, 2), np.int64)
@@ -256,29 +257,37 @@ def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_m
     # |a - b|^2 from the Gram matrix: (m, m) work instead of (m, m, D)
     e = np.asarray(center_embedding, dtype=np.float64)
     sq = np.einsum("ij,ij->i", e, e)
-    alike = sq[:, None] + sq[None] - 2.0 * (e @ e.T) < max_distance * max_distance
-    i, j = np.nonzero(np.triu(near & alike, k=1))
-    return np.stack([i, j], axis=1)
+    feature_sq = sq[:, None] + sq[None] - 2.0 * (e @ e.T)
+    i, j = np.nonzero(np.triu(near & (feature_sq < max_distance * max_distance), k=1))
+    order = np.argsort(feature_sq[i, j], kind="stable")
+    return np.stack([i[order], j[order]], axis=1)
 
 
 def merge_labels(labels: np.ndarray, num_centers: int, pairs: np.ndarray) -> np.ndarray:
-    """``labels`` (center rank + 1, 0 = none) with the centers of each connected set of
-    ``pairs`` (see :func:`merge_centers`) carrying one label."""
+    """``labels`` (center rank + 1, 0 = none) with the centers of each group that
+    :func:`merge_centers` makes of ``pairs`` carrying one label."""
     group = merge_centers(num_centers, pairs)
     return np.concatenate([[0], group + 1]).astype(labels.dtype)[labels]
 
 
 def merge_centers(num_centers: int, pairs: np.ndarray) -> np.ndarray:
-    """Group of each center (the lowest-ranked center of its connected set of ``pairs``): the
-    labels of merged centers become one instance. ``pairs`` index centers 0..num_centers-1."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    """Group of each center (its lowest-ranked member): the labels of merged centers become
+    one instance. ``pairs`` index centers 0..num_centers-1, in order of preference.
 
+    Complete linkage: a pair joins two groups only when every center of one is paired with
+    every center of the other. Two centers of one part lie within 2 d_max of each other, so a
+    group whose members are not all pairwise close is more than one part; joining whole
+    connected sets instead chains a row of touching parallel parts (A like B, B like C) into
+    one instance. Centers of one part are all pairwise alike, so they still end up together.
+    """
+    group = np.arange(num_centers)
     if num_centers == 0 or len(pairs) == 0:
-        return np.arange(num_centers)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                       shape=(num_centers, num_centers))
-    _, component = connected_components(graph, directed=False)
-    first = np.full(component.max() + 1, num_centers)
-    np.minimum.at(first, component, np.arange(num_centers))
-    return first[component]
+        return group
+    linked = np.zeros((num_centers, num_centers), bool)
+    linked[pairs[:, 0], pairs[:, 1]] = True
+    linked |= linked.T
+    for i, j in pairs:        # a few dozen centers: the loop is over pairs, not points
+        a, b = group[i], group[j]
+        if a != b and linked[np.ix_(group == a, group == b)].all():
+            group[(group == a) | (group == b)] = min(a, b)
+    return group

@@ -24,11 +24,12 @@ def rods(count: int = 3) -> tuple[np.ndarray, np.ndarray]:
 class RodOracle:
     """Stands in for FPCC-Net on :func:`rods` scenes (one block, no floor): a broad center score
     with two peaks per rod, 12 cm apart (as an undertrained network gives an elongated part), and
-    one embedding per rod, 2.8 apart."""
+    one embedding per rod, 2.8 apart (or, with ``spacing``, rod i at i * spacing along one
+    axis: neighbouring rods alike, rods two apart not)."""
 
-    def __init__(self, xyz: np.ndarray, labels: np.ndarray):
+    def __init__(self, xyz: np.ndarray, labels: np.ndarray, spacing: float | None = None):
         self.card = ModelCard(name="oracle", k=8, part_radius=R, block_size=4096)
-        self.origin, self.labels = xyz.min(axis=0), labels
+        self.origin, self.labels, self.spacing = xyz.min(axis=0), labels, spacing
 
     def run(self, features: np.ndarray, knn: np.ndarray):
         xyz = features[0, :, :3].astype(np.float64) * R + self.origin
@@ -37,16 +38,20 @@ class RodOracle:
         score = np.clip(1 - (peak / 0.03) ** 2, 0, 1) * 0.9
         rod = np.rint((xyz[:, 1] - self.origin[1] - 0.01) / GAP).astype(int)
         embedding = np.zeros((len(xyz), 8), np.float32)
-        embedding[np.arange(len(xyz)), rod] = 2.0
+        if self.spacing is None:
+            embedding[np.arange(len(xyz)), rod] = 2.0
+        else:
+            embedding[:, 0] = rod * self.spacing
         return embedding[None], score.astype(np.float32)[None]
 
 
-def segment(center_merge: float, screening_factor: float) -> tuple[np.ndarray, np.ndarray]:
-    xyz, labels = rods()
+def segment(center_merge: float, screening_factor: float, count: int = 3,
+            spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    xyz, labels = rods(count)
     cfg = PipelineConfig(part_radius=R, voxel_size=0.0, remove_floor=False, min_points=10,
                          score_threshold=0.5, screening_factor=screening_factor,
                          center_merge=center_merge, block_size=4096)
-    return Pipeline(RodOracle(xyz, labels), cfg).segment(xyz).labels, labels
+    return Pipeline(RodOracle(xyz, labels, spacing), cfg).segment(xyz).labels, labels
 
 
 def instances_per_rod(pred: np.ndarray, truth: np.ndarray) -> list[int]:
@@ -80,10 +85,30 @@ def test_close_center_pairs_needs_both_3d_and_embedding_closeness():
     assert pairs.tolist() == [[0, 1]]
 
 
-def test_merge_centers_takes_the_lowest_rank_of_each_connected_set():
-    group = merge_centers(6, np.array([[1, 4], [4, 5], [2, 3]]))
-    assert group.tolist() == [0, 1, 2, 2, 1, 1]
+def test_merge_centers_joins_groups_only_when_all_their_centers_are_paired():
+    # 0-1-2 a chain (0 and 2 not a pair): the first pair wins, 2 stays alone
+    assert merge_centers(3, np.array([[0, 1], [1, 2]])).tolist() == [0, 0, 2]
+    assert merge_centers(3, np.array([[1, 2], [0, 1]])).tolist() == [0, 1, 1]
+    # every center paired with every other: one group, named by its lowest rank
+    assert merge_centers(4, np.array([[2, 3], [1, 3], [1, 2]])).tolist() == [0, 1, 1, 1]
+    assert merge_centers(6, np.array([[1, 4], [2, 3]])).tolist() == [0, 1, 2, 2, 1, 5]
     assert merge_centers(3, np.zeros((0, 2), int)).tolist() == [0, 1, 2]
+
+
+def test_close_center_pairs_come_most_alike_first():
+    xyz = np.zeros((3, 3))
+    emb = np.array([[0.0], [0.4], [0.3]])
+    pairs = close_center_pairs(xyz, emb, d_max=0.1, max_distance=0.5)
+    assert pairs.tolist() == [[1, 2], [0, 2], [0, 1]]
+
+
+def test_merging_does_not_chain_a_row_of_alike_neighbours_into_one_instance():
+    # rod i embedded at 0.4 i: each rod is alike its neighbours (0.4 < 0.5) but not the rod
+    # two over (0.8); the rods' two centers each are pairwise within 2 d_max
+    pred, truth = segment(center_merge=0.5, screening_factor=0.3, count=3, spacing=0.4)
+    rods_per_instance = [len(np.unique(truth[pred == label])) for label in np.unique(pred[pred > 0])]
+    assert max(rods_per_instance) <= 2
+    assert instances_per_rod(pred, truth) == [1, 1, 1]
 
 
 def test_center_merge_range_is_checked():
