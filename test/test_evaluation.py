@@ -223,6 +223,21 @@ def test_command_options(tmp_path, capsys):
     assert report["scenes"][0]["part_radius"] == 0.04
 
 
+def test_report_goes_to_the_working_directory_when_the_data_is_read_only(tmp_path, monkeypatch):
+    from fpcc_ros.commands import evaluate as command
+
+    data = tmp_path / "scenes"
+    data.mkdir()
+    model = Path("models/m.onnx")
+    assert command.default_report_path(data, model) == data / "eval_m.json"
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    # root may write anywhere, so the read-only folder is simulated through os.access
+    monkeypatch.setattr(command.os, "access", lambda path, mode: Path(path) != data)
+    assert command.default_report_path(data, model) == work / "eval_m.json"
+
+
 def test_command_errors(tmp_path, capsys):
     assert cli_main(["eval", "--data", str(tmp_path / "nope")]) == 2
     assert "is not a directory" in capsys.readouterr().err

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -24,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="columns of .txt scenes: paper = x y z center_score instance (the "
                         "FPCC authors' format), peer = x y z instance center_score")
     parser.add_argument("--out", type=Path, default=None, metavar="REPORT.json",
-                        help="JSON report (default: DIR/eval_<model stem>.json)")
+                        help="JSON report (default: DIR/eval_<model stem>.json, or ./ when DIR "
+                        "is read-only)")
     parser.add_argument("--limit", type=positive_int, default=None, metavar="N",
                         help="evaluate only the first N scenes (sorted by name)")
     parser.add_argument("--protocol", choices=["visible", "paper", "both"], default="both",
@@ -35,6 +37,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "of the median part radius, 7 steps); the report uses the best one")
     parser.add_argument("--no-baseline", action="store_true", help="evaluate FPCC only")
     add_pipeline_arguments(parser)
+
+
+def default_report_path(data: Path, model_path: Path) -> Path:
+    """Beside the scenes, unless their folder is read-only (a shared dataset): then the working
+    directory, so a long evaluation does not end in a write error."""
+    name = f"eval_{model_path.stem}.json"
+    return data / name if os.access(data, os.W_OK) else Path.cwd() / name
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         scenes = scenes[:args.limit]
     protocols = ("paper", "visible") if args.protocol == "both" else (args.protocol,)
     model_path = Path(args.model) if args.model else default_model_path()
-    out: Path = args.out or data / f"eval_{model_path.stem}.json"
+    out: Path = args.out or default_report_path(data, model_path)
 
     try:
         pipeline = build_pipeline(args)
