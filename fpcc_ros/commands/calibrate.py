@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--screening", type=float, nargs="+", default=[0.5, 0.7, 0.8, 1.0],
                         help="screening factors γ to try (the paper: 0.8-1.0; elongated "
                         "parts want less)")
-    parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5],
+    parser.add_argument("--merges", type=float, nargs="+", default=[0.0, 0.5, 0.7],
                         help="center_merge values to try (0 = off)")
     parser.add_argument("--prototypes", type=float, nargs="+", default=[0.0, 0.3, 0.6],
                         help="center_prototype values to try (part radii; 0 = the center "
