@@ -202,6 +202,33 @@ def test_cosine_learning_rate():
     assert train_mod.lr_at(cfg, 10) == pytest.approx(1e-5)
 
 
+def test_cosine_learning_rate_ends_by_the_time_limit():
+    cfg = TrainConfig(epochs=10, lr=1e-3, min_lr_fraction=0.01, time_limit_min=30,
+                      anneal_by_time=True)
+    # without the option the clock does not matter (a cut run resumes exactly)
+    assert train_mod.lr_at(TrainConfig(epochs=10, lr=1e-3, min_lr_fraction=0.01,
+                                       time_limit_min=30), 2, elapsed_s=30 * 60) > 0.9e-3
+    # half the time gone at epoch 2: the schedule follows the clock
+    assert train_mod.lr_at(cfg, 2, elapsed_s=15 * 60) == pytest.approx(0.5 * (1e-3 + 1e-5))
+    assert train_mod.lr_at(cfg, 3, elapsed_s=30 * 60) == pytest.approx(1e-5)
+    # epochs ahead of the clock: the epochs lead, as without a limit
+    assert train_mod.lr_at(cfg, 5, elapsed_s=60) == pytest.approx(0.5 * (1e-3 + 1e-5))
+    assert train_mod.lr_at(cfg, 2.5, elapsed_s=0) == pytest.approx(
+        1e-5 + 0.5 * (1e-3 - 1e-5) * (1 + np.cos(np.pi * 0.25)))
+
+
+def test_a_run_stopped_by_its_time_limit_ends_with_its_learning_rate_decayed(
+        scenes, tmp_path, monkeypatch):
+    clock = iter(range(0, 10**6, 5))                   # every reading of the clock: 5 s later
+    monkeypatch.setattr(train_mod, "_now", lambda: float(next(clock)))
+    cfg = TrainConfig(epochs=50, batch=4, data=SMALL, net=TINY, threads=1, lr=1e-3,
+                      time_limit_min=3.0, anneal_by_time=True)
+    summary = train(cfg, [scenes / "val"], tmp_path / "run", progress=False)
+    assert summary["status"] == "time_limit" and 3 <= summary["epochs_done"] < 50
+    lrs = [row["lr"] for row in load_checkpoint(tmp_path / "run" / "checkpoint_last.pt")["history"]]
+    assert lrs and lrs[-1] < 0.5e-3 and lrs == sorted(lrs, reverse=True)
+
+
 def test_fine_tuning_keeps_the_init_models_graph_unless_told_otherwise(scenes, tmp_path, capsys):
     dilated = DataConfig(k=8, block_size=256, voxel_factor=0.15, remove_floor=False,
                          knn_near=4, knn_reach=12)

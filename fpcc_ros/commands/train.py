@@ -49,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "auto = bf16 where the CPU has AVX512-BF16 or AMX, else fp32")
     parser.add_argument("--time-limit", type=float, default=0.0, metavar="MIN",
                         help="stop cleanly (checkpoint saved) after MIN minutes; 0 = no limit")
+    parser.add_argument("--anneal-by-time", action="store_true",
+                        help="with --time-limit: the learning rate's cosine decay ends by the "
+                        "limit when the epochs would not fit in it (a fixed-budget fine-tune); "
+                        "without it the decay follows the epochs, so a cut run resumes exactly")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         config = TrainConfig(
             epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
             alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
-            time_limit_min=args.time_limit, precision=args.precision, data=data,
+            time_limit_min=args.time_limit, anneal_by_time=args.anneal_by_time,
+            precision=args.precision, data=data,
             net=TINY if args.net == "tiny" else NetConfig())
         summary = train(config, args.data, args.out, val=args.val, init=args.init,
                         resume=args.resume, command=["fpcc", *sys.argv[1:]])

@@ -51,6 +51,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 2
     time_limit_min: float = 0.0
+    anneal_by_time: bool = False  # the cosine ends by time_limit_min if the epochs would not fit
     score_threshold: float = 0.6
     screening_factor: float = 1.0
     feature_gate: float = 1.0
@@ -113,9 +114,20 @@ def resolve_precision(precision: str) -> str:
 
 # ----------------------------------------------------------------------------- checkpoints
 
-def lr_at(config: TrainConfig, epoch: int) -> float:
-    """Cosine decay from lr to lr * min_lr_fraction over the configured epochs."""
-    frac = min(epoch / max(config.epochs, 1), 1.0)
+def lr_at(config: TrainConfig, epoch: float, elapsed_s: float = 0.0) -> float:
+    """Cosine decay from lr to lr * min_lr_fraction over the configured epochs or, with
+    ``anneal_by_time`` and a time limit, over whichever of the two ends first (``elapsed_s``:
+    this run's seconds so far). ``epoch`` may be fractional (within an epoch).
+
+    A fixed-budget fine-tune (the per-part recipe: 30 minutes) that the clock stops would
+    otherwise end at a high learning rate in the middle of its schedule: on the ring screw, 21
+    of 25 epochs fit in 30 minutes. Off by default: a run cut by its time limit to be resumed
+    later (the default model's, across sessions) resumes exactly only on an epoch schedule.
+    """
+    frac = epoch / max(config.epochs, 1)
+    if config.anneal_by_time and config.time_limit_min > 0:
+        frac = max(frac, elapsed_s / (60.0 * config.time_limit_min))
+    frac = min(frac, 1.0)
     low = config.lr * config.min_lr_fraction
     return low + 0.5 * (config.lr - low) * (1 + math.cos(math.pi * frac))
 
@@ -348,7 +360,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
         val = val or state["trained_on"]["validation"]
         saved = TrainConfig.from_dict(state["config"])
         config = replace(saved, epochs=config.epochs, time_limit_min=config.time_limit_min,
-                         threads=config.threads)
+                         anneal_by_time=config.anneal_by_time, threads=config.threads)
     config = replace(config, precision=resolve_precision(config.precision))
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -397,10 +409,8 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     status = "done"
     while epoch < config.epochs:
         epoch_start = _now()
-        lr = lr_at(config, epoch)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
         groups = dataset.batches(epoch, config.batch)
+        lr = lr_at(config, epoch, _now() - start_time)   # the row's value if no step runs
         model.train()
         bar = tqdm(groups, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress,
                    initial=skip, total=len(groups), leave=False)
@@ -410,6 +420,9 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
                 save(last_path, step)
                 bar.close()
                 break
+            lr = lr_at(config, epoch + step / len(groups), _now() - start_time)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
             batch = collate(groups[step])
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.precision == "bf16"):
                 embedding, score = model(batch["features"], batch["knn"])
