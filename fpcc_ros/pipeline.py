@@ -247,7 +247,8 @@ class Pipeline:
         # 6. nearest center in feature space (within d_max in 3D); each block compares its
         #    points with the centers' embeddings from the same network pass (embeddings of
         #    different passes are not comparable). Centers that one pass sees as one part
-        #    (within 2 d_max, embeddings closer than center_merge) become one instance: a small
+        #    (within 2 d_max, embeddings closer than center_merge; merged groups pairwise so, see
+        #    merge_centers; pairs most alike first within each pass) become one instance: a small
         #    screening radius keeps parallel elongated parts apart without splitting each. With
         #    center_prototype > 0 a center's embedding is the mean of its like neighbours
         merging = cfg.center_merge > 0 and len(centers) > 1
