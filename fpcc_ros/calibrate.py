@@ -36,12 +36,23 @@ class _MemoModel:
 
 
 class _MemoPipeline(Pipeline):
-    """A Pipeline that reuses the block inputs (blocks, features, kNN) of the scene it last
-    saw: they depend on the points and the voxel size only, not on the settings swept here."""
+    """A Pipeline that reuses the network points (valid, downsampled, floor marked) and block
+    inputs (blocks, features, kNN) of the scene it last saw: they depend on the points and the
+    voxel size only, not on the settings swept here. The network points were ~40% of the time
+    per setting (a 12-scene ring screw calibration: downsampling 38 and floor 7 of ~125 ms)."""
 
     def __init__(self, model, config: PipelineConfig, cache: dict):
         super().__init__(model, config)
         self._cache = cache
+
+    def _network_points(self, xyz: np.ndarray, clock):
+        cfg = self.config
+        key = ("points", xyz.shape, float(np.nansum(xyz[:64])), cfg.effective_voxel_size,
+               cfg.max_points, cfg.remove_floor, cfg.view_axis, cfg.roi_min, cfg.roi_max,
+               cfg.part_radius)
+        if key not in self._cache:
+            self._cache[key] = super()._network_points(xyz, clock)
+        return self._cache[key]
 
     def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray):
         key = (xyz.shape, len(candidates), candidates[:64].tobytes(), float(xyz[:64].sum()))
@@ -124,3 +135,4 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
                 scene_counts(labels[finite], gt[finite], "visible", limit)
     return [CalibrationRow(t, g, sum(parts.values(), InstanceCounts()), f, m, p, v, parts)
             for (t, g, f, m, p, v), parts in rows.items()]
+

@@ -1,6 +1,7 @@
 """The runtime path from an (N, 3) cloud to instances: pure numpy + onnxruntime, no ROS.
 
-Read :meth:`Pipeline.segment` top to bottom: it is DESIGN.md §1 steps 1-7 in order.
+Read :meth:`Pipeline.segment` top to bottom: it is DESIGN.md §1 steps 1-7 in order (steps 1-2b,
+the points the network sees, in :meth:`Pipeline._network_points` just below it).
 """
 from __future__ import annotations
 
@@ -208,24 +209,9 @@ class Pipeline:
         clock = _StageClock()
         n = len(xyz)
 
-        # 1. valid points: finite xyz inside the optional ROI box (either corner may be empty)
-        valid_idx = _valid_points(xyz, cfg.roi_min, cfg.roi_max)
-        pts = np.take(xyz, valid_idx, axis=0).astype(np.float64)
-        clock.lap("valid")
-
-        # 2. voxel downsample; `inverse` carries every valid point to its representative
-        keep, inverse, voxel = _bounded_downsample(pts, cfg.effective_voxel_size, cfg.max_points)
-        # turned into the camera's view, as the network was trained (distances, and so NMS and
-        # clustering, are unchanged; labels and centroids stay in the cloud's frame)
-        view_axis = detect_view_axis(pts) if cfg.view_axis == "auto" else cfg.view_axis
-        net_xyz = to_camera(pts[keep], view_axis)
-        clock.lap("downsample")
-
-        # 2b. the floor around the tote (largest plane) carries no instance: skip it
-        on_floor = dominant_plane(net_xyz, plane_tolerance(cfg.part_radius)) \
-            if cfg.remove_floor else np.zeros(len(net_xyz), bool)
-        floor_free = np.flatnonzero(~on_floor)
-        clock.lap("floor")
+        # 1-2b. valid points, voxel downsampled, in the camera's view, floor marked
+        valid_idx, inverse, voxel, view_axis, net_xyz, floor_free = \
+            self._network_points(xyz, clock)
 
         # 3. spatial blocks, each with a halo of neighbours around it; all inputs (features,
         #    kNN on every core) before the first network pass, while onnxruntime's threads idle
@@ -286,6 +272,33 @@ class Pipeline:
                                   num_inferred_points=sum(len(run.ext) for run in runs),
                                   timings_ms=clock.laps)
 
+
+    def _network_points(self, xyz: np.ndarray, clock: "_StageClock"
+                        ) -> tuple[np.ndarray, np.ndarray, float, str, np.ndarray, np.ndarray]:
+        """Steps 1-2b of :meth:`segment`: the valid points' indices, each valid point's
+        representative (``inverse``), the voxel edge, the view axis, the representatives in the
+        camera's view (``net_xyz``) and those off the floor. A method so that calibration, which
+        segments one scene under many clustering settings, can compute them once."""
+        cfg = self.config
+        # 1. valid points: finite xyz inside the optional ROI box (either corner may be empty)
+        valid_idx = _valid_points(xyz, cfg.roi_min, cfg.roi_max)
+        pts = np.take(xyz, valid_idx, axis=0).astype(np.float64)
+        clock.lap("valid")
+
+        # 2. voxel downsample; `inverse` carries every valid point to its representative
+        keep, inverse, voxel = _bounded_downsample(pts, cfg.effective_voxel_size, cfg.max_points)
+        # turned into the camera's view, as the network was trained (distances, and so NMS and
+        # clustering, are unchanged; labels and centroids stay in the cloud's frame)
+        view_axis = detect_view_axis(pts) if cfg.view_axis == "auto" else cfg.view_axis
+        net_xyz = to_camera(pts[keep], view_axis)
+        clock.lap("downsample")
+
+        # 2b. the floor around the tote (largest plane) carries no instance: skip it
+        on_floor = dominant_plane(net_xyz, plane_tolerance(cfg.part_radius)) \
+            if cfg.remove_floor else np.zeros(len(net_xyz), bool)
+        floor_free = np.flatnonzero(~on_floor)
+        clock.lap("floor")
+        return valid_idx, inverse, voxel, view_axis, net_xyz, floor_free
 
     def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray
                       ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
