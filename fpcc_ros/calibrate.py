@@ -136,3 +136,31 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
     return [CalibrationRow(t, g, sum(parts.values(), InstanceCounts()), f, m, p, v, parts)
             for (t, g, f, m, p, v), parts in rows.items()]
 
+
+# (row attribute, `fpcc calibrate` option) of each swept setting, in the order the CLI lists them
+SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates"),
+                  ("screening_factor", "--screening"), ("center_merge", "--merges"),
+                  ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"))
+
+
+def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow
+                          ) -> list[tuple[str, str, float, str]]:
+    """(setting, option, value, "largest" | "smallest") for each setting where ``best`` took the
+    largest or smallest of several values tried: the optimum may lie beyond the grid.
+
+    0 for center_merge and center_prototype means "off", a natural end of their range, and is
+    not reported. On our per-part gear shaft and ring screw models the best θ (0.7) and gate
+    (0.75) of the default grid both sat on its edge, and the gear shaft's γ (0.5) too.
+    """
+    edges = []
+    for name, option in SWEPT_SETTINGS:
+        tried = sorted({getattr(r, name) for r in rows})
+        value = getattr(best, name)
+        if len(tried) < 2:
+            continue
+        if value == tried[-1]:
+            edges.append((name, option, value, "largest"))
+        elif value == tried[0] and not (value == 0 and name in ("center_merge",
+                                                                 "center_prototype")):
+            edges.append((name, option, value, "smallest"))
+    return edges

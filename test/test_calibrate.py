@@ -143,3 +143,47 @@ def test_part_mean_objective_counts_every_part_once():
     assert fair.score("pooled") < row.score("pooled")
     # scenes without part names: one group, the pooled F1
     assert CalibrationRow(0.5, 1.0, nuts).part_mean_f1 == CalibrationRow(0.5, 1.0, nuts).f1
+
+
+def test_settings_on_the_edge_of_the_grid_are_reported():
+    """The best θ is the largest tried and its gate the smallest: both are named with the option
+    to widen; a middle value, a single value and merge/prototype 0 (off) are not."""
+    import itertools
+
+    from fpcc_ros.calibrate import CalibrationRow, settings_on_grid_edge
+    from fpcc_ros.metrics import InstanceCounts
+
+    rows = [CalibrationRow(t, g, InstanceCounts(1, 2, 2), screening_factor=f, center_merge=m,
+                           center_prototype=0.0)
+            for t, g, f, m in itertools.product([0.5, 0.7], [0.75, 1.0], [0.5, 0.7, 0.8],
+                                                [0.0, 0.5])]
+    best = next(r for r in rows if (r.score_threshold, r.feature_gate, r.screening_factor,
+                                    r.center_merge) == (0.7, 0.75, 0.7, 0.0))
+    assert settings_on_grid_edge(rows, best) == [
+        ("score_threshold", "--thresholds", 0.7, "largest"),
+        ("feature_gate", "--gates", 0.75, "smallest")]
+    inner = next(r for r in rows if (r.score_threshold, r.feature_gate, r.screening_factor,
+                                     r.center_merge) == (0.5, 1.0, 0.8, 0.5))
+    assert settings_on_grid_edge(rows, inner) == [
+        ("score_threshold", "--thresholds", 0.5, "smallest"),
+        ("feature_gate", "--gates", 1.0, "largest"),
+        ("screening_factor", "--screening", 0.8, "largest"),
+        ("center_merge", "--merges", 0.5, "largest")]
+
+
+def test_cli_says_when_the_best_setting_is_on_the_grids_edge(tmp_path, capsys):
+    import shutil
+
+    from fpcc_ros.cli import main as fpcc
+
+    for suffix in (".onnx", ".json"):
+        shutil.copy(TINY_MODEL.with_suffix(suffix), tmp_path / f"m{suffix}")
+    (tmp_path / "val").mkdir()
+    write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
+    # one value per setting but the gates: whichever gate wins is on an edge
+    assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
+                 "--thresholds", "0.4", "--gates", "0.5", "3.0", "--screening", "0.7",
+                 "--merges", "0", "--prototypes", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "run again with more values in --gates" in out
+    assert "--thresholds" not in out.split("best (")[1]

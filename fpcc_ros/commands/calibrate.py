@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fpcc_ros.calibrate import calibrate
+    from fpcc_ros.calibrate import calibrate, settings_on_grid_edge
     from fpcc_ros.model_card import ModelCardError, card_path_for
     from fpcc_ros.onnx_model import FpccModel, ModelLoadError
 
@@ -84,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
           f"{best.center_merge}, center_prototype {best.center_prototype}, voxel_factor "
           f"{best.voxel_factor} (pooled F1 {best.f1:.3f}, mean part F1 {best.part_mean_f1:.3f}; "
           f"{len(scenes)} scenes, {parts} parts)")
+    for name, option, value, side in settings_on_grid_edge(rows, best):
+        print(f"note: {name} {value} is the {side} value tried; a better one may lie beyond "
+              f"it: run again with more values in {option}")
     if args.write:
         path = card_path_for(args.model)
         card = json.loads(path.read_text())
