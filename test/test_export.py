@@ -11,7 +11,7 @@ import fpcc_ros.training.train as train_mod
 from fpcc_ros.cli import main as fpcc
 from fpcc_ros.model_card import card_path_for, load_card
 from fpcc_ros.training.dataset import DataConfig, collate, load_scene, scene_blocks
-from fpcc_ros.training.export import check_onnx, export_onnx, export_untrained
+from fpcc_ros.training.export import check_onnx, export_checkpoint, export_onnx, export_untrained
 from fpcc_ros.training.loss import batch_loss
 from fpcc_ros.training.model import TINY, FPCCNet
 from fpcc_ros.training.train import TrainConfig, load_checkpoint, model_from_checkpoint, resolve_init, train
@@ -130,6 +130,11 @@ def test_time_limit_stops_mid_epoch_and_resume_is_exact(scenes, tmp_path, monkey
     state = load_checkpoint(tmp_path / "cut" / "checkpoint_last.pt")
     assert state["epoch"] == 0 and 0 < state["step"] < 6
     monkeypatch.undo()
+    # the card says the weights are past the last validated epoch (here: none)
+    card = export_checkpoint(tmp_path / "cut" / "checkpoint_last.pt", tmp_path / "cut.onnx",
+                             part_radius=0.05, save_torch=False, check=False)
+    assert card.training["epochs"] == 0
+    assert card.training["steps_after_last_epoch"] == state["step"]
 
     assert train(TINY_CONFIG, None, tmp_path / "cut", resume=True, progress=False)["status"] == "done"
     whole = load_checkpoint(tmp_path / "whole" / "checkpoint_last.pt")["model"]

@@ -106,7 +106,10 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
         feature_gate=config.feature_gate,
         description="FPCC-Net (DGCNN backbone on one xyz kNN graph, embedding + center-score heads)",
         trained_on=trained_on,
+        # a run stopped by --time-limit saves its weights mid-epoch: the metrics (the last
+        # validated epoch's) then describe weights this many steps older
         training={"command": " ".join(state.get("command", [])), "epochs": len(history),
+                  "steps_after_last_epoch": int(state.get("step", 0)),
                   "wall_time_s": round(float(state.get("wall_time_s", 0.0)), 1),
                   "config": config.to_dict(), "checkpoint": str(checkpoint)},
         metrics={k: v for k, v in last.items() if k.startswith("val_") or k.startswith("loss")},
