@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,7 +46,7 @@ class _MemoPipeline(Pipeline):
         super().__init__(model, config)
         self._cache = cache
 
-    def _network_points(self, xyz: np.ndarray, clock):
+    def _network_points(self, xyz: np.ndarray, clock: Any):
         cfg = self.config
         key = ("points", xyz.shape, float(np.nansum(xyz[:64])), cfg.effective_voxel_size,
                cfg.max_points, cfg.remove_floor, cfg.view_axis, cfg.roi_min, cfg.roi_max,
@@ -141,6 +142,7 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
 SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates"),
                   ("screening_factor", "--screening"), ("center_merge", "--merges"),
                   ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"))
+OFF_AT_ZERO = ("center_merge", "center_prototype")   # 0 = the step is off
 
 
 def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow
@@ -156,11 +158,9 @@ def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow
     for name, option in SWEPT_SETTINGS:
         tried = sorted({getattr(r, name) for r in rows})
         value = getattr(best, name)
-        if len(tried) < 2:
-            continue
-        if value == tried[-1]:
+        off = value == 0 and name in OFF_AT_ZERO
+        if len(tried) > 1 and value == tried[-1]:
             edges.append((name, option, value, "largest"))
-        elif value == tried[0] and not (value == 0 and name in ("center_merge",
-                                                                 "center_prototype")):
+        elif len(tried) > 1 and value == tried[0] and not off:
             edges.append((name, option, value, "smallest"))
     return edges

@@ -272,7 +272,6 @@ class Pipeline:
                                   num_inferred_points=sum(len(run.ext) for run in runs),
                                   timings_ms=clock.laps)
 
-
     def _network_points(self, xyz: np.ndarray, clock: "_StageClock"
                         ) -> tuple[np.ndarray, np.ndarray, float, str, np.ndarray, np.ndarray]:
         """Steps 1-2b of :meth:`segment`: the valid points' indices, each valid point's

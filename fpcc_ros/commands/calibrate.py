@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fpcc_ros.calibrate import calibrate, settings_on_grid_edge
+    from fpcc_ros.calibrate import SWEPT_SETTINGS, calibrate, settings_on_grid_edge
     from fpcc_ros.model_card import ModelCardError, card_path_for
     from fpcc_ros.onnx_model import FpccModel, ModelLoadError
 
@@ -84,10 +84,9 @@ def run(args: argparse.Namespace) -> int:
               f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
               f"{r.part_mean_f1:>6.3f}")
     best = rows[0]
-    print(f"best ({args.objective}): score_threshold {best.score_threshold}, feature_gate "
-          f"{best.feature_gate}, screening_factor {best.screening_factor}, center_merge "
-          f"{best.center_merge}, center_prototype {best.center_prototype}, voxel_factor "
-          f"{best.voxel_factor} (pooled F1 {best.f1:.3f}, mean part F1 {best.part_mean_f1:.3f}; "
+    chosen = {name: getattr(best, name) for name, _ in SWEPT_SETTINGS}
+    print(f"best ({args.objective}): {', '.join(f'{k} {v}' for k, v in chosen.items())} "
+          f"(pooled F1 {best.f1:.3f}, mean part F1 {best.part_mean_f1:.3f}; "
           f"{len(scenes)} scenes, {parts} parts)")
     for name, option, value, side in settings_on_grid_edge(rows, best):
         print(f"note: {name} {value} is the {side} value tried; a better one may lie beyond "
@@ -95,15 +94,9 @@ def run(args: argparse.Namespace) -> int:
     if args.write:
         path = card_path_for(args.model)
         card = json.loads(path.read_text())
-        card["score_threshold"], card["feature_gate"] = best.score_threshold, best.feature_gate
-        card["screening_factor"], card["center_merge"] = best.screening_factor, best.center_merge
-        card["center_prototype"] = best.center_prototype
-        card["voxel_factor"] = best.voxel_factor   # also the density of fine-tuning from it
+        card.update(chosen)   # voxel_factor is also the density of fine-tuning from it
         card.setdefault("metrics", {})["calibration"] = {
-            "scenes": [str(s) for s in scenes], "protocol": "visible",
-            "score_threshold": best.score_threshold, "feature_gate": best.feature_gate,
-            "screening_factor": best.screening_factor, "center_merge": best.center_merge,
-            "center_prototype": best.center_prototype, "voxel_factor": best.voxel_factor,
+            "scenes": [str(s) for s in scenes], "protocol": "visible", **chosen,
             "precision": best.counts.precision, "recall": best.counts.recall, "f1": best.f1,
             "objective": args.objective, "part_mean_f1": best.part_mean_f1, "parts": parts}
         path.write_text(json.dumps(card, indent=2) + "\n")
