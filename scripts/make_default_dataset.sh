@@ -1,23 +1,33 @@
 #!/usr/bin/env bash
 # Training data of the shipped default model: the built-in part library ONLY (never ../shared).
 # Every built-in part at several random dimension draws (part seeds), piles from a few parts to
-# several layers deep. Scene seeds 100000+ for training, 800000+ for the built-in validation set
-# (held-out part seeds), so they never collide with the IPA validation seeds (900000+).
+# several layers deep. Scene seeds SEED_BASE+ for training (100000 for the first set, 200000 for
+# later ones), 800000+ for the built-in validation set (held-out part seed 99), so they never
+# collide with the per-part (500000-599999) or IPA test seeds (900000+).
 #   usage: scripts/make_default_dataset.sh OUT_DIR [SCENES_PER_PART_SEED] [PART_SEEDS]
+#                                          [FIRST_PART_SEED] [SEED_BASE]
+# A later set (FIRST_PART_SEED > 0: new dimension draws, new scene seeds) writes no validation
+# scenes, so the validation set stays the one the first set made.
+#   first set (sessions 1-7): scripts/make_default_dataset.sh /work/data_default 7 6
+#   second set (session 8):   scripts/make_default_dataset.sh /work/data_default 7 12 6 200000
 set -euo pipefail
 OUT=${1:?output folder}
 PER=${2:-7}
 SEEDS=${3:-6}
+FIRST=${4:-0}
+BASE=${5:-100000}
 PY=${PY:-.venv/bin/python}
 PARTS=$($PY -c "from fpcc_ros.training.parts import BUILTIN_PARTS; print(' '.join(BUILTIN_PARTS))" 2>/dev/null)
 i=0
 for part in $PARTS; do
-  for ps in $(seq 0 $((SEEDS - 1))); do
+  for ps in $(seq "$FIRST" $((FIRST + SEEDS - 1))); do
     $PY -m fpcc_ros.cli synth --part "$part" --part-seed "$ps" --scenes "$PER" \
-        --seed $((100000 + i * 1000)) --out "$OUT/train/${part}_p${ps}" --workers 2
+        --seed $((BASE + i * 1000)) --out "$OUT/train/${part}_p${ps}" --workers 2
     i=$((i + 1))
   done
-  # validation: one held-out dimension draw per part
-  $PY -m fpcc_ros.cli synth --part "$part" --part-seed 99 --scenes 2 \
-      --seed $((800000 + i * 1000)) --out "$OUT/val/${part}_p99" --workers 2
+  if [ "$FIRST" -eq 0 ]; then
+    # validation: one held-out dimension draw per part
+    $PY -m fpcc_ros.cli synth --part "$part" --part-seed 99 --scenes 2 \
+        --seed $((800000 + i * 1000)) --out "$OUT/val/${part}_p99" --workers 2
+  fi
 done
