@@ -179,6 +179,31 @@ def test_augmented_epochs_are_seeded(tmp_path):
         assert b.knn.max() < len(b.xyz)
 
 
+def test_augmented_dataset_downsamples_each_scene_as_it_reads_it(tmp_path, monkeypatch):
+    """Never all full-resolution scenes in memory at once: a big training set (1,764 scenes)
+    would otherwise need ~18 GB before the first downsampling."""
+    import fpcc_ros.training.dataset as dataset
+    paths = write_fake_scenes(tmp_path, count=3)
+    full_alive, most = [], [0]
+    real_load, real_down = dataset.load_scene, dataset._predownsample
+
+    def load(path):
+        scene = real_load(path)
+        full_alive.append(len(scene.xyz))
+        most[0] = max(most[0], len(full_alive))
+        return scene
+
+    def down(scene, factor):
+        full_alive.pop()
+        return real_down(scene, factor)
+
+    monkeypatch.setattr(dataset, "load_scene", load)
+    monkeypatch.setattr(dataset, "_predownsample", down)
+    ds = BlockDataset(paths, SMALL, augment=True, seed=7)
+    assert most[0] == 1 and not full_alive
+    assert all(len(s.xyz) < len(real_load(p).xyz) for s, p in zip(ds.scenes, paths))
+
+
 def test_fixed_dataset_batches_cover_all_blocks(tmp_path):
     ds = BlockDataset(write_fake_scenes(tmp_path, count=2), SMALL, augment=False)
     blocks = ds.epoch_blocks(0)
