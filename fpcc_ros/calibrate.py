@@ -13,14 +13,13 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from fpcc_ros.evaluation import f1_score
 from fpcc_ros.metrics import InstanceCounts, scene_counts, visible_threshold
 from fpcc_ros.onnx_model import FpccModel
-from fpcc_ros.pipeline import Pipeline, PipelineConfig
+from fpcc_ros.pipeline import Pipeline, PipelineConfig, _StageClock
 
 
 class _MemoModel:
@@ -46,7 +45,7 @@ class _MemoPipeline(Pipeline):
         super().__init__(model, config)
         self._cache = cache
 
-    def _network_points(self, xyz: np.ndarray, clock: Any):
+    def _network_points(self, xyz: np.ndarray, clock: _StageClock):
         cfg = self.config
         key = ("points", xyz.shape, float(np.nansum(xyz[:64])), cfg.effective_voxel_size,
                cfg.max_points, cfg.remove_floor, cfg.view_axis, cfg.roi_min, cfg.roi_max,
@@ -158,9 +157,10 @@ def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow
     for name, option in SWEPT_SETTINGS:
         tried = sorted({getattr(r, name) for r in rows})
         value = getattr(best, name)
-        off = value == 0 and name in OFF_AT_ZERO
-        if len(tried) > 1 and value == tried[-1]:
+        if len(tried) < 2:
+            continue
+        if value == tried[-1]:
             edges.append((name, option, value, "largest"))
-        elif len(tried) > 1 and value == tried[0] and not off:
+        elif value == tried[0] and not (value == 0 and name in OFF_AT_ZERO):
             edges.append((name, option, value, "smallest"))
     return edges
