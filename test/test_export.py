@@ -78,7 +78,9 @@ def test_cli_train_resume_export(scenes, tmp_path):
     rows = _history(run)
     assert [r["epoch"] for r in rows] == ["1", "2"]
     for r in rows:
-        assert float(r["loss"]) == pytest.approx(float(r["loss_ef"]) + 3 * float(r["loss_cs"]), rel=1e-6)
+        # the default center-loss weight reaches the loss the trainer reports
+        assert float(r["loss"]) == pytest.approx(
+            float(r["loss_ef"]) + TrainConfig().alpha * float(r["loss_cs"]), rel=1e-6)
         assert r["val_loss"] and r["val_precision"] and r["val_recall"] and r["val_center_mae"]
     state = torch.load(run / "checkpoint_last.pt", weights_only=True)   # plain types only
     assert state["epoch"] == 2 and state["step"] == 0
@@ -117,6 +119,16 @@ def test_cli_train_resume_export(scenes, tmp_path):
                     tmp_path / "run2", init=onnx_path, progress=False)
     assert summary["status"] == "done"
     assert load_checkpoint(tmp_path / "run2" / "checkpoint_last.pt")["net"] == TINY.to_dict()
+
+
+def test_cli_alpha_weights_the_center_loss(scenes, tmp_path):
+    run = tmp_path / "run"
+    assert fpcc(["train", "--data", str(scenes / "train"), "--out", str(run), "--epochs", "1",
+                 "--alpha", "3", *TRAIN_ARGS]) == 0
+    row = _history(run)[0]
+    assert float(row["loss"]) == pytest.approx(float(row["loss_ef"]) + 3 * float(row["loss_cs"]),
+                                               rel=1e-6)
+    assert load_checkpoint(run / "checkpoint_last.pt")["config"]["alpha"] == 3.0
 
 
 def test_time_limit_stops_mid_epoch_and_resume_is_exact(scenes, tmp_path, monkeypatch):

@@ -6,6 +6,7 @@ import json
 import sys
 
 from fpcc_ros.training.model import TINY, NetConfig
+from fpcc_ros.training.train import TRAIN_ALPHA
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--knn-reach", type=int, default=None, help=inherited.format(48).strip())
     parser.add_argument("--voxel-factor", type=float, default=None,
                         help="voxel size as a fraction of the part radius" + inherited.format(0.1))
-    parser.add_argument("--alpha", type=float, default=3.0, help="weight of the center-score loss")
+    parser.add_argument("--alpha", type=float, default=TRAIN_ALPHA,
+                        help=f"weight of the center-score loss (default {TRAIN_ALPHA:g}; the "
+                             "paper's 3 goes with its unnormalised embedding loss)")
     parser.add_argument("--no-augment", action="store_true",
                         help="no rotation / scale / voxel-size / dropout augmentation")
     parser.add_argument("--net", choices=("full", "tiny"), default="full",
