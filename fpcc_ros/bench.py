@@ -700,6 +700,10 @@ class BenchReport:
                          f"{p.get('center_prototype', 0)}, merge {p.get('center_merge', 0)}) "
                          f"{_stat(p['assign_ms'])} ms, total {_stat(p['total_ms'])} ms "
                          f"(median/p90); {_accuracy(p)}")
+            if p.get("one_thread"):
+                q = p["one_thread"]
+                lines.append(f"  the same with the chunk loops on one thread: clustering "
+                             f"{_stat(q['assign_ms'])} ms, total {_stat(q['total_ms'])} ms")
             if p.get("paper_rule"):
                 q = p["paper_rule"]
                 lines.append(f"  with the paper's clustering (own center embeddings, no merging):"
@@ -910,6 +914,11 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
                               **measure_postprocess(case, max(runs, 5), *nms_settings,
                                                     cfg.feature_gate, cfg.center_prototype,
                                                     cfg.center_merge)}
+        from fpcc_ros.clustering import chunk_threads
+        with chunk_threads(1):   # what splitting the chunk loops across cores gains
+            report.postprocess["one_thread"] = measure_postprocess(
+                case, max(runs, 5), *nms_settings, cfg.feature_gate, cfg.center_prototype,
+                cfg.center_merge)
         if cfg.center_prototype > 0 or cfg.center_merge > 0:
             # the extra clustering steps have a price: show the paper's rule beside them
             report.postprocess["paper_rule"] = measure_postprocess(

@@ -225,6 +225,16 @@ def test_postprocess_case_shows_the_paper_rule_beside_extra_clustering_steps(tin
     assert again.summary() == report.summary()
 
 
+def test_postprocess_case_times_the_chunk_loops_on_one_thread_too(tiny_scene, tiny_pipeline):
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1,
+                             postprocess_scene=tiny_scene[0])
+    one, default = report.postprocess["one_thread"], report.postprocess
+    # the same work, so the same centers and labels; only the time may differ
+    assert one["centers"] == default["centers"] and one["accuracy"] == default["accuracy"]
+    assert one["assign_ms"]["median"] > 0
+    assert "chunk loops on one thread" in report.summary()
+
+
 def test_postprocess_case_uses_fixed_nms_settings_not_the_cards(tiny_scene, tiny_pipeline):
     """The NMS + clustering figure must compare across calibrations: a card with another θ/γ
     changes the gate and clustering steps only, not which centers the case times."""

@@ -163,6 +163,64 @@ def test_assignment_agrees_with_the_paper_rule_where_unambiguous(monkeypatch):
     np.testing.assert_array_equal(fast[unambiguous], ref[unambiguous])
 
 
+@pytest.fixture
+def three_threads(monkeypatch):
+    """The clustering's chunk loops split over a pool of 3 threads from 128 rows on (chunks of
+    64 rows), whatever this machine's core count."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import fpcc_ros.clustering as clustering
+
+    pool = ThreadPoolExecutor(3, thread_name_prefix="test_pool")
+    monkeypatch.setattr(clustering, "_thread_pool", lambda: pool)
+    monkeypatch.setattr(clustering, "ROW_CHUNK", 64)
+    monkeypatch.setattr(clustering, "PARALLEL_ROWS", 128)
+    yield clustering
+    pool.shutdown()
+
+
+def test_row_ranges_are_whole_chunks_on_pool_threads(three_threads):
+    import threading
+
+    clustering = three_threads
+    seen = clustering._over_row_ranges(
+        1000, lambda a, b: (a, b, threading.current_thread().name))
+    ranges = [(a, b) for a, b, _ in seen]
+    # 16 chunks of 64 over 3 threads: 5, 5 and 6 chunks, the last one short
+    assert ranges == [(0, 320), (320, 640), (640, 1000)]
+    assert all(name.startswith("test_pool") for _, _, name in seen)
+    # below PARALLEL_ROWS, under chunk_threads(1), and on a single core (no pool), one range
+    assert clustering._over_row_ranges(127, lambda a, b: (a, b)) == [(0, 127)]
+    with clustering.chunk_threads(1):
+        assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 1000)]
+    with clustering.chunk_threads(2):
+        assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 512), (512, 1000)]
+    clustering._thread_pool = lambda: None
+    assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 1000)]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_split_assignment_gives_the_labels_of_one_thread(seed, three_threads, monkeypatch):
+    clustering = three_threads
+    xyz, emb, cxyz, cemb = _clustered_scene(seed, n_points=1000)
+    split = clustering.assign_to_center_points(xyz, emb, cxyz, cemb, 0.8, 2.5)
+    monkeypatch.setattr(clustering, "PARALLEL_ROWS", 10**9)
+    np.testing.assert_array_equal(
+        split, clustering.assign_to_center_points(xyz, emb, cxyz, cemb, 0.8, 2.5))
+    np.testing.assert_array_equal(split, _dense_gated_assign(xyz, emb, cxyz, cemb, 0.8, 2.5))
+
+
+def test_split_prototypes_match_one_thread(three_threads, monkeypatch):
+    clustering = three_threads
+    xyz, emb, cxyz, _ = _clustered_scene(5, n_points=1000)
+    centers = np.array([0, 100, 200, 300])
+    split = clustering.center_prototypes(xyz, emb, centers, radius=0.5, pull=5.0)
+    monkeypatch.setattr(clustering, "PARALLEL_ROWS", 10**9)
+    whole = clustering.center_prototypes(xyz, emb, centers, radius=0.5, pull=5.0)
+    assert not np.allclose(whole, emb[centers])   # neighbours were averaged
+    np.testing.assert_allclose(split, whole, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("direct", [0, 2, 64])
 @pytest.mark.parametrize("chunk", [16, 1024])
