@@ -42,12 +42,15 @@ _Result = TypeVar("_Result")
 
 
 @cache
-def _thread_pool() -> ThreadPoolExecutor | None:
+def _thread_pool() -> tuple[ThreadPoolExecutor, int] | None:
     """Threads for the chunk loops (numpy and single-threaded BLAS release the GIL), one per
-    core this process may run on, created on first use; None on a single core."""
+    core this process may run on, created on first use, and their number; None on a single
+    core."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     threads = min(MAX_THREADS, cores or 1)
-    return ThreadPoolExecutor(threads, thread_name_prefix="fpcc_cluster") if threads > 1 else None
+    if threads < 2:
+        return None
+    return ThreadPoolExecutor(threads, thread_name_prefix="fpcc_cluster"), threads
 
 
 _thread_limit = MAX_THREADS
@@ -77,11 +80,11 @@ def _over_row_ranges(n: int, work: Callable[[int, int], _Result]) -> list[_Resul
     """
     pool = _thread_pool()
     chunks = -(-n // ROW_CHUNK)
-    parts = min(pool._max_workers, chunks, _thread_limit) if pool is not None else 1
+    parts = min(pool[1], chunks, _thread_limit) if pool is not None else 1
     if parts < 2 or n < PARALLEL_ROWS:
         return [work(0, n)]
     bounds = [min(n, (chunks * i // parts) * ROW_CHUNK) for i in range(parts + 1)]
-    return list(pool.map(work, bounds[:-1], bounds[1:]))
+    return list(pool[0].map(work, bounds[:-1], bounds[1:]))
 
 
 @cache

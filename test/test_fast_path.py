@@ -172,14 +172,14 @@ def three_threads(monkeypatch):
     import fpcc_ros.clustering as clustering
 
     pool = ThreadPoolExecutor(3, thread_name_prefix="test_pool")
-    monkeypatch.setattr(clustering, "_thread_pool", lambda: pool)
+    monkeypatch.setattr(clustering, "_thread_pool", lambda: (pool, 3))
     monkeypatch.setattr(clustering, "ROW_CHUNK", 64)
     monkeypatch.setattr(clustering, "PARALLEL_ROWS", 128)
     yield clustering
     pool.shutdown()
 
 
-def test_row_ranges_are_whole_chunks_on_pool_threads(three_threads):
+def test_row_ranges_are_whole_chunks_on_pool_threads(three_threads, monkeypatch):
     import threading
 
     clustering = three_threads
@@ -195,7 +195,7 @@ def test_row_ranges_are_whole_chunks_on_pool_threads(three_threads):
         assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 1000)]
     with clustering.chunk_threads(2):
         assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 512), (512, 1000)]
-    clustering._thread_pool = lambda: None
+    monkeypatch.setattr(clustering, "_thread_pool", lambda: None)
     assert clustering._over_row_ranges(1000, lambda a, b: (a, b)) == [(0, 1000)]
 
 
