@@ -910,15 +910,14 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         case = postprocess_case(postprocess_scene)
         cfg = pipeline.config
         nms_settings = (POSTPROCESS_SCORE_THRESHOLD, POSTPROCESS_SCREENING_FACTOR)
+        card_clustering = (cfg.feature_gate, cfg.center_prototype, cfg.center_merge)
         report.postprocess = {"scene": postprocess_scene.name,
                               **measure_postprocess(case, max(runs, 5), *nms_settings,
-                                                    cfg.feature_gate, cfg.center_prototype,
-                                                    cfg.center_merge)}
+                                                    *card_clustering)}
         from fpcc_ros.clustering import chunk_threads
         with chunk_threads(1):   # what splitting the chunk loops across cores gains
             report.postprocess["one_thread"] = measure_postprocess(
-                case, max(runs, 5), *nms_settings, cfg.feature_gate, cfg.center_prototype,
-                cfg.center_merge)
+                case, max(runs, 5), *nms_settings, *card_clustering)
         if cfg.center_prototype > 0 or cfg.center_merge > 0:
             # the extra clustering steps have a price: show the paper's rule beside them
             report.postprocess["paper_rule"] = measure_postprocess(

@@ -78,10 +78,10 @@ def _over_row_ranges(n: int, work: Callable[[int, int], _Result]) -> list[_Resul
     core. Chunk-aligned ranges give every row the chunk it has on one thread, so the results do
     not depend on the number of threads. Call inside :func:`single_thread_blas`.
     """
-    pool = _thread_pool()
+    pool = _thread_pool() if n >= PARALLEL_ROWS else None
     chunks = -(-n // ROW_CHUNK)
     parts = min(pool[1], chunks, _thread_limit) if pool is not None else 1
-    if parts < 2 or n < PARALLEL_ROWS:
+    if parts < 2:
         return [work(0, n)]
     bounds = [min(n, (chunks * i // parts) * ROW_CHUNK) for i in range(parts + 1)]
     return list(pool[0].map(work, bounds[:-1], bounds[1:]))
@@ -192,7 +192,8 @@ def assign_to_center_points(xyz: np.ndarray, embedding: np.ndarray, center_xyz: 
                             feature_gate)
 
     with single_thread_blas():  # applies on entry to every BLAS call, on every thread
-        return np.concatenate(_over_row_ranges(n, assign_rows))
+        parts = _over_row_ranges(n, assign_rows)
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _assign_rows(xyz: np.ndarray, embedding: np.ndarray, center_xyz: np.ndarray,
@@ -269,8 +270,7 @@ def center_prototypes(xyz: np.ndarray, embedding: np.ndarray, center_rows: np.nd
 
     with single_thread_blas():
         parts = _over_row_ranges(len(sample_xyz), like_sums)
-    sums = sum(part[0] for part in parts)
-    counts = sum(part[1] for part in parts)
+    sums, counts = parts[0] if len(parts) == 1 else map(sum, zip(*parts))
     # unsampled, each center is its own neighbour (distance 0); sampled, one may have no like
     # neighbour among the sample, and keeps its own embedding
     return np.where(counts[:, None] > 0, sums / np.maximum(counts, 1.0)[:, None], own)
