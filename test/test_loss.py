@@ -162,3 +162,28 @@ def test_fast_embedding_loss_matches_definition_value_and_gradient(seed):
     assert values[0] > 0
     assert values[1] == pytest.approx(values[0], rel=1e-9)
     torch.testing.assert_close(grads[1], grads[0], atol=1e-9, rtol=1e-7)
+
+
+@pytest.mark.parametrize("chunk", [7, 13, 40, 64])
+def test_fast_embedding_loss_over_chunks_matches_definition(monkeypatch, chunk):
+    """Row chunks meet only the columns from their own on (upper triangle): several chunks, a
+    ragged last one and a single one all give the definition's value and gradient."""
+    import fpcc_ros.training.loss as loss_module
+
+    monkeypatch.setattr(loss_module, "_CHUNK", chunk)
+    torch.manual_seed(3)
+    n = 40
+    emb = torch.randn(n, 5, dtype=torch.float64) * 0.5
+    xyz = torch.rand(n, 3, dtype=torch.float64) * 0.2
+    inst = torch.randint(0, 5, (n,))
+    s = torch.rand(n, dtype=torch.float64) * (inst > 0)
+    grads, values = [], []
+    for fn in (embedding_loss, embedding_loss_fast):
+        e = emb.clone().requires_grad_()
+        value = fn(e, xyz, inst, s, 0.04)    # 2 d_max = 0.08: some pairs valid, many not
+        value.backward()
+        values.append(value.item())
+        grads.append(e.grad)
+    assert 0 < values[0]
+    assert values[1] == pytest.approx(values[0], rel=1e-9)
+    torch.testing.assert_close(grads[1], grads[0], atol=1e-9, rtol=1e-7)
