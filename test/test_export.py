@@ -325,3 +325,19 @@ def test_checkpoints_from_before_the_precision_option_resume_in_fp32():
     body = TINY_CONFIG.to_dict()
     del body["precision"]
     assert TrainConfig.from_dict(body).precision == "fp32"
+
+
+def test_val_every_validates_every_nth_epoch_and_the_last(scenes, tmp_path):
+    cfg = TrainConfig(**{**TINY_CONFIG.__dict__, "epochs": 5, "val_every": 2})
+    train(cfg, [scenes / "train"], tmp_path / "run", val=[scenes / "val"], progress=False)
+    rows = _history(tmp_path / "run")
+    assert [row["epoch"] for row in rows] == ["1", "2", "3", "4", "5"]
+    validated = [row["epoch"] for row in rows if row["val_loss"] != ""]
+    assert validated == ["2", "4", "5"]
+    assert load_checkpoint(tmp_path / "run" / "checkpoint_best.pt")["epoch"] in (2, 4, 5)
+
+
+def test_val_every_below_one_is_a_clear_error(scenes, tmp_path, capsys):
+    assert fpcc(["train", "--data", str(scenes / "train"), "--out", str(tmp_path / "run"),
+                 "--val-every", "0", *TRAIN_ARGS]) == 2
+    assert "--val-every 0: must be >= 1" in capsys.readouterr().err
