@@ -339,8 +339,7 @@ def _validate_after(config: TrainConfig, epochs_done: int, out_of_time: bool) ->
     done, or its time limit reached). Validating 12 piles costs ~15 s, about a tenth of a
     100-scene epoch; a fixed-budget fine-tune that ships its last checkpoint spends that on
     training instead."""
-    return epochs_done % max(config.val_every, 1) == 0 or epochs_done >= config.epochs \
-        or out_of_time
+    return epochs_done % config.val_every == 0 or epochs_done >= config.epochs or out_of_time
 
 
 def _score(row: dict[str, Any]) -> float:
@@ -362,8 +361,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
 
     ``resume`` continues ``run_dir/checkpoint_last.pt`` with its saved configuration (only
     ``epochs``, ``time_limit_min``, ``anneal_by_time``, ``threads`` and ``val_every`` come from
-    ``config``) and, when ``data`` / ``val``
-    are empty, its saved scene folders. ``init`` (ignored when resuming) names starting weights
+    ``config``) and, when ``data`` / ``val`` are empty, its saved scene folders. ``init`` (ignored when resuming) names starting weights
     (see ``resolve_init``); the network widths then follow the init weights."""
     from tqdm import tqdm
 
