@@ -143,6 +143,18 @@ def test_batch_loss_ignores_padding_and_averages_blocks():
     assert total.item() == pytest.approx(ef_hand + 3 * 2 * 0.125 / 6, abs=1e-5)
 
 
+def _definition_and_fast(emb, xyz, inst, s, d_max):
+    """(values, gradients) of embedding_loss and embedding_loss_fast on the same inputs."""
+    values, grads = [], []
+    for fn in (embedding_loss, embedding_loss_fast):
+        e = emb.clone().requires_grad_()
+        value = fn(e, xyz, inst, s, d_max)
+        value.backward()
+        values.append(value.item())
+        grads.append(e.grad)
+    return values, grads
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_fast_embedding_loss_matches_definition_value_and_gradient(seed):
     torch.manual_seed(seed)
@@ -152,13 +164,7 @@ def test_fast_embedding_loss_matches_definition_value_and_gradient(seed):
     xyz = torch.rand(n, 3, dtype=torch.float64) * 0.2
     inst = torch.randint(0, 4, (n,))
     s = torch.rand(n, dtype=torch.float64) * (inst > 0)
-    grads, values = [], []
-    for fn in (embedding_loss, embedding_loss_fast):
-        e = emb.clone().requires_grad_()
-        value = fn(e, xyz, inst, s, 0.05)
-        value.backward()
-        values.append(value.item())
-        grads.append(e.grad)
+    values, grads = _definition_and_fast(emb, xyz, inst, s, 0.05)
     assert values[0] > 0
     assert values[1] == pytest.approx(values[0], rel=1e-9)
     torch.testing.assert_close(grads[1], grads[0], atol=1e-9, rtol=1e-7)
@@ -177,13 +183,8 @@ def test_fast_embedding_loss_over_chunks_matches_definition(monkeypatch, chunk):
     xyz = torch.rand(n, 3, dtype=torch.float64) * 0.2
     inst = torch.randint(0, 5, (n,))
     s = torch.rand(n, dtype=torch.float64) * (inst > 0)
-    grads, values = [], []
-    for fn in (embedding_loss, embedding_loss_fast):
-        e = emb.clone().requires_grad_()
-        value = fn(e, xyz, inst, s, 0.04)    # 2 d_max = 0.08: some pairs valid, many not
-        value.backward()
-        values.append(value.item())
-        grads.append(e.grad)
+    # 2 d_max = 0.08: some pairs valid, many not
+    values, grads = _definition_and_fast(emb, xyz, inst, s, 0.04)
     assert 0 < values[0]
     assert values[1] == pytest.approx(values[0], rel=1e-9)
     torch.testing.assert_close(grads[1], grads[0], atol=1e-9, rtol=1e-7)
