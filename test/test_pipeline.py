@@ -80,3 +80,36 @@ def test_voxel_downsample_survives_kilometre_extents():
     xyz = np.array([[0.0, 0, 0], [0.001, 0, 0], [9000.0, 9000.0, 9000.0]])
     keep, inverse = voxel_downsample(xyz, 1e-4)
     assert len(keep) == 3 and sorted(inverse.tolist()) == [0, 1, 2]
+
+
+def test_a_frame_runs_with_blas_on_the_calling_thread_and_restores_it(model):
+    """segment pins BLAS for the whole frame (its spinning pool would take the core the kNN
+    queries and onnxruntime need) and leaves the process's BLAS threads as they were."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    controller = threadpoolctl.ThreadpoolController()
+    blas = controller.select(user_api="blas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy's BLAS is not visible to threadpoolctl")
+
+    def blas_threads() -> list[int]:
+        return [lib.num_threads for lib in threadpoolctl.ThreadpoolController()
+                .select(user_api="blas").lib_controllers]
+
+    pipe = Pipeline(model, PipelineConfig.from_card(model.card, part_radius=0.05, min_points=1))
+    seen: list[list[int]] = []
+    run = pipe.model.run
+
+    def spy(*args):
+        seen.append(blas_threads())
+        return run(*args)
+
+    with blas.limit(limits=2):
+        pipe.model.run = spy
+        try:
+            labels = pipe.segment(_scene()).labels
+        finally:
+            del pipe.model.run
+        assert seen and all(threads == [1] * len(threads) for threads in seen)
+        assert blas_threads() == [2] * len(seen[0])
+    # the same labels as the steps run without the pin
+    np.testing.assert_array_equal(labels, pipe._segment(_scene()).labels)
