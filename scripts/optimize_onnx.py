@@ -2,7 +2,9 @@
 """Rewrite an exported FPCC-Net for onnxruntime's CPU kernels (exact; see fpcc_ros.graph_rewrite).
 
 The global max-pool over points runs as GlobalMaxPool on a transposed GEMM instead of a slow
-ReduceMax (about a third of the network's time). Inputs, outputs and the card are unchanged;
+ReduceMax (about a third of the network's time), and every max-pool runs before the bias add
+and activation that feed it (they commute with a max; 0.83-0.88x of the network's time on 2.5-
+4.5k-point blocks, outputs bit-identical). Inputs, outputs and the card are unchanged;
 the result is checked against the original on sample blocks before it is written.
 
     .venv/bin/python scripts/optimize_onnx.py models/fpcc_default.onnx          # in place
@@ -37,7 +39,8 @@ def main() -> int:
     if out != args.model and card.is_file():
         shutil.copyfile(card, out.with_suffix(".json"))
     print(f"{out}: {result['fused']} global max-pool(s) on a transposed GEMM, "
-          f"{result['generic']} other(s); largest output difference {result['max_abs_diff']:.1e}")
+          f"{result['generic']} other(s); {result['moved']} max-pool(s) moved ahead of their "
+          f"bias and activation; largest output difference {result['max_abs_diff']:.1e}")
     return 0
 
 

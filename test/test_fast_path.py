@@ -34,7 +34,8 @@ def test_rewrite_of_the_exported_network_keeps_its_outputs(tmp_path):
 
     dst = tmp_path / "fast.onnx"
     result = optimize_file(TINY, dst)
-    assert result == {"fused": 1, "generic": 0, "max_abs_diff": result["max_abs_diff"]}
+    # the global pool, then all four max-pools (3 EdgeConv, 1 global) ahead of bias + activation
+    assert result == {"fused": 1, "generic": 0, "moved": 4, "max_abs_diff": result["max_abs_diff"]}
     rewritten = onnx.load(str(dst))
     ops = _ops(rewritten)
     assert ops.count("GlobalMaxPool") == 1
@@ -49,9 +50,15 @@ def test_rewrite_of_the_exported_network_keeps_its_outputs(tmp_path):
         for x, y in zip(a.run(None, feed), b.run(None, feed)):
             assert x.shape == y.shape
             np.testing.assert_allclose(y, x, rtol=0, atol=1e-5)
+    # no activation or bias add is left on a tensor that still has the neighbour axis
+    for n in rewritten.graph.node:
+        if n.op_type in ("LeakyRelu", "Add"):
+            feeds_pool = any(m.op_type in ("ReduceMax", "GlobalMaxPool") and n.output[0] in m.input
+                             for m in rewritten.graph.node)
+            assert not feeds_pool, n.name
     # the runtime loads it (its load-time checks included) and reports the rewrite
     (tmp_path / "fast.json").write_text(card_path_for(TINY).read_text())
-    assert FpccModel(dst).graph_notes == "global-max-pool"
+    assert FpccModel(dst).graph_notes == "global-max-pool,max-first"
 
 
 def _toy_model(keepdims: int, leaky_is_output: bool) -> bytes:
@@ -97,6 +104,59 @@ def test_rewrite_variants_match_reducemax(keepdims, leaky_is_output):
     np.testing.assert_allclose(got[0], want, rtol=0, atol=1e-5)
     if leaky_is_output:
         np.testing.assert_allclose(got[1], act, rtol=0, atol=1e-5)
+
+
+def _max_tail_model(case: str) -> tuple[bytes, dict[str, np.ndarray]]:
+    """A (b, n, k, c) tensor through a bias/per-point Add and LeakyRelu into a max over k."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(3)
+    bias = rng.normal(size=(4,)).astype(np.float32)
+    varying = rng.normal(size=(5, 4)).astype(np.float32)      # differs along k: must not move
+    inits = [numpy_helper.from_array(bias, "bias"), numpy_helper.from_array(varying, "varying"),
+             numpy_helper.from_array(np.array([2], np.int64), "k_axis")]
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["b", "n", 5, 4])
+    p = helper.make_tensor_value_info("p", TensorProto.FLOAT, ["b", "n", 4])
+    other = {"bias": "bias", "varying": "varying", "per_point": "p_k", "negative": "bias"}[case]
+    nodes = [helper.make_node("Unsqueeze", ["p", "k_axis"], ["p_k"]),
+             helper.make_node("Add", [other, "x"], ["a"]),
+             helper.make_node("LeakyRelu", ["a"], ["l"], alpha=-0.5 if case == "negative" else 0.2),
+             helper.make_node("ReduceMax", ["l"], ["y"], axes=[2], keepdims=0)]
+    graph = helper.make_graph(nodes, "tail", [x, p], [helper.make_tensor_value_info(
+        "y", TensorProto.FLOAT, ["b", "n", 4])], initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    feed = {"x": rng.normal(size=(2, 9, 5, 4)).astype(np.float32),
+            "p": rng.normal(size=(2, 9, 4)).astype(np.float32)}
+    return model.SerializeToString(), feed
+
+
+@pytest.mark.parametrize("case, after_max", [("bias", {"Add", "LeakyRelu"}),
+                                             ("per_point", {"Add", "LeakyRelu"}),
+                                             ("varying", {"LeakyRelu"}), ("negative", set())])
+def test_max_moves_ahead_of_monotone_steps_only(case, after_max):
+    """max_k LeakyReLU(z_k + c) = LeakyReLU(max_k z_k + c) when c is the same along k (a bias,
+    a per-point term) and the slope is not negative; then the outputs are bit-identical. An
+    Add of something that varies along k stays before the max (its activation alone moves)."""
+    from fpcc_ros.graph_rewrite import move_max_before_monotone
+
+    original, feed = _max_tail_model(case)
+    model, moved = move_max_before_monotone(onnx.load_from_string(original))
+    onnx.checker.check_model(model)
+    assert moved == int(bool(after_max))
+    ops = _ops(model)
+    assert {op for op in ("Add", "LeakyRelu") if ops.index(op) > ops.index("ReduceMax")} == after_max
+    got = _session(model.SerializeToString()).run(None, feed)[0]
+    assert np.array_equal(got, _session(original).run(None, feed)[0])
+    # independent reference in numpy
+    c = {"bias": lambda: onnx.numpy_helper.to_array(onnx.load_from_string(original).graph.initializer[0]),
+         "per_point": lambda: feed["p"][:, :, None, :],
+         "varying": lambda: onnx.numpy_helper.to_array(onnx.load_from_string(original).graph.initializer[1]),
+         "negative": lambda: onnx.numpy_helper.to_array(onnx.load_from_string(original).graph.initializer[0])}[case]()
+    pre = feed["x"] + c
+    alpha = -0.5 if case == "negative" else 0.2
+    want = np.where(pre >= 0, pre, alpha * pre).max(axis=2)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
 
 
 def test_optimize_file_refuses_a_result_it_cannot_verify(tmp_path):
