@@ -204,7 +204,7 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
                 if side is None:
                     a, b = b, a
                     side = same_along(b, axes, rank, keepdims)
-                if side is None:
+                if side is None or ranks.get(a) != rank:   # the chain's tensor is not broadcast
                     break
                 tail.append((node, side))
                 x = a
