@@ -32,7 +32,8 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Per-frame settings. Every field is also a node parameter of the same name."""
+    """Per-frame settings. Those in segmenter.PIPELINE_PARAMS are also node parameters of the
+    same name; the block, voxel and floor settings come from the model card or these defaults."""
 
     part_radius: float
     screening_factor: float = 1.0
