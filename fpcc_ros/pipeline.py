@@ -33,7 +33,7 @@ class ConfigError(ValueError):
 @dataclass(frozen=True)
 class PipelineConfig:
     """Per-frame settings. Those in segmenter.PIPELINE_PARAMS are also node parameters of the
-    same name; the block, voxel and floor settings come from the model card or these defaults."""
+    same name; the rest (blocks, voxel factor, floor) come from the model card or these defaults."""
 
     part_radius: float
     screening_factor: float = 1.0
