@@ -687,7 +687,9 @@ class BenchReport:
         lines = []
         m = self.machine
         lines.append(f"machine: {m.get('cpu')} , {m.get('cpus')} CPUs visible, onnxruntime "
-                     f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}")
+                     f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}"
+                     + (f", speed probe {m['speed_probe_ms']:.1f} ms (README table's days: "
+                        f"~{REFERENCE_PROBE_MS:g})" if m.get("speed_probe_ms") else ""))
         lines.append(f"model: {self.model.get('path')} ({self.model.get('name')})"
                      + ("  UNTRAINED: accuracy meaningless" if self.model.get("untrained") else ""))
         if self.postprocess:
@@ -788,6 +790,28 @@ def _accuracy(case: dict[str, Any]) -> str:
     return f"P {case['accuracy']['precision']:.3f} R {case['accuracy']['recall']:.3f}"
 
 
+# A numpy pass over 100k x 128 float32 (one dot product per row) took 2.3-2.8 ms on days this
+# 2-core VM matched the README's table and 3.5-7.8 ms on days it ran 1.5-2.8x slower: figures
+# measured while it reads well above this are inflated (compare ratios within one run).
+REFERENCE_PROBE_MS = 2.6
+SLOW_PROBE_FACTOR = 1.3
+
+
+def speed_probe(repeats: int = 15) -> float:
+    """Median ms of one numpy pass over a 100k x 128 float32 array: memory speed, which NMS,
+    clustering and most stages around the network are bound by. Recorded with every report so
+    that figures from a slow day (a shared VM's neighbours, no AVX-512) can be told apart."""
+    rng = np.random.default_rng(0)
+    rows = rng.random((100_000, 128), dtype=np.float32)
+    weights = rng.random(128, dtype=np.float32)
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        np.einsum("ij,j->i", rows, weights)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times[1:]))  # the first pass warms caches
+
+
 def machine_info(pipeline: Any) -> dict[str, Any]:
     import onnxruntime as ort
 
@@ -807,7 +831,8 @@ def machine_info(pipeline: Any) -> dict[str, Any]:
     return {"cpu": cpu, "cpus": cpus, "load_avg_1m_at_start": load[0] if load else None,
             "python": platform.python_version(), "numpy": np.__version__,
             "onnxruntime": ort.__version__, "providers": pipeline.model.active_providers,
-            "threads": getattr(pipeline.model, "threads", None), "platform": platform.platform()}
+            "threads": getattr(pipeline.model, "threads", None), "platform": platform.platform(),
+            "speed_probe_ms": speed_probe()}
 
 
 def model_info(pipeline: Any) -> dict[str, Any]:
@@ -927,6 +952,12 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         report.notes.append(f"the machine was busy at the start (1-minute load "
                             f"{report.machine['load_avg_1m_at_start']:.1f} on "
                             f"{report.machine['cpus']} CPUs): timings are inflated")
+    probe = report.machine.get("speed_probe_ms")
+    if probe and probe > SLOW_PROBE_FACTOR * REFERENCE_PROBE_MS:
+        report.notes.append(f"this machine ran the speed probe in {probe:.1f} ms against "
+                            f"~{REFERENCE_PROBE_MS:g} ms on the README table's days: timings are "
+                            f"about {probe / REFERENCE_PROBE_MS:.1f}x inflated; compare ratios "
+                            "within one run")
     if not report.model.get("graph"):
         report.notes.append("the model's graph is not rewritten for onnxruntime's CPU kernels: "
                             "scripts/optimize_onnx.py MODEL (exact) cuts its inference time by "

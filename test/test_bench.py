@@ -90,6 +90,19 @@ def test_bench_smoke(tiny_scene, tiny_pipeline, tmp_path):
     assert md.count("\n| synth/") == 2 and "| goal | measured |" in md
     text = report.table() + report.summary()
     assert scene.name in text and "goals:" in text
+    assert report.machine["speed_probe_ms"] > 0 and "speed probe" in report.summary()
+
+
+def test_a_slow_machine_is_named_in_the_notes(tiny_scene, tiny_pipeline, monkeypatch):
+    """The speed probe far above the reference day's: the report says its timings are
+    inflated and by how much; at the reference speed it says nothing."""
+    for probe, noted in ((2 * bench.REFERENCE_PROBE_MS, True), (bench.REFERENCE_PROBE_MS, False)):
+        monkeypatch.setattr(bench, "speed_probe", lambda probe=probe: probe)
+        report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+        notes = [n for n in report.notes if "speed probe" in n]
+        assert bool(notes) == noted
+        if noted:
+            assert "2.0x inflated" in notes[0]
 
 
 def _run(name, kind, parts, valid, total_ms, counts=None, full=None):
