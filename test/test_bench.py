@@ -263,3 +263,16 @@ def test_postprocess_case_uses_fixed_nms_settings_not_the_cards(tiny_scene, tiny
                                         pipeline.config.feature_gate)
     assert post["centers"] > at_card["centers"]
     assert f"θ {bench.POSTPROCESS_SCORE_THRESHOLD}" in report.summary()
+
+
+@pytest.mark.parametrize("graph, hint", [("", "not rewritten"),
+                                         ("global-max-pool", "predates the max-first"),
+                                         ("global-max-pool,max-first", None)])
+def test_a_model_without_the_latest_graph_rewrite_is_named(tiny_scene, tiny_pipeline,
+                                                           monkeypatch, graph, hint):
+    monkeypatch.setattr(tiny_pipeline.model, "graph_notes", graph)
+    notes = " ".join(bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1).notes)
+    if hint is None:
+        assert "optimize_onnx" not in notes
+    else:
+        assert hint in notes and "scripts/optimize_onnx.py" in notes
