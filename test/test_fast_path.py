@@ -106,8 +106,9 @@ def test_rewrite_variants_match_reducemax(keepdims, leaky_is_output):
         np.testing.assert_allclose(got[1], act, rtol=0, atol=1e-5)
 
 
-def _max_tail_model(case: str) -> tuple[bytes, dict[str, np.ndarray]]:
-    """A (b, n, k, c) tensor through a bias/per-point Add and LeakyRelu into a max over k."""
+def _max_tail_model(case: str, opset: int = 17) -> tuple[bytes, dict[str, np.ndarray]]:
+    """A (b, n, k, c) tensor through a bias/per-point Add and LeakyRelu into a max over k
+    (opset 18 and later take ReduceMax's axes as an input)."""
     from onnx import TensorProto, helper, numpy_helper
 
     rng = np.random.default_rng(3)
@@ -121,26 +122,28 @@ def _max_tail_model(case: str) -> tuple[bytes, dict[str, np.ndarray]]:
     nodes = [helper.make_node("Unsqueeze", ["p", "k_axis"], ["p_k"]),
              helper.make_node("Add", [other, "x"], ["a"]),
              helper.make_node("LeakyRelu", ["a"], ["l"], alpha=-0.5 if case == "negative" else 0.2),
-             helper.make_node("ReduceMax", ["l"], ["y"], axes=[2], keepdims=0)]
+             helper.make_node("ReduceMax", ["l"], ["y"], axes=[2], keepdims=0) if opset < 18
+             else helper.make_node("ReduceMax", ["l", "k_axis"], ["y"], keepdims=0)]
     graph = helper.make_graph(nodes, "tail", [x, p], [helper.make_tensor_value_info(
         "y", TensorProto.FLOAT, ["b", "n", 4])], initializer=inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
     model.ir_version = 8
     feed = {"x": rng.normal(size=(2, 9, 5, 4)).astype(np.float32),
             "p": rng.normal(size=(2, 9, 4)).astype(np.float32)}
     return model.SerializeToString(), feed
 
 
+@pytest.mark.parametrize("opset", [17, 18])
 @pytest.mark.parametrize("case, after_max", [("bias", {"Add", "LeakyRelu"}),
                                              ("per_point", {"Add", "LeakyRelu"}),
                                              ("varying", {"LeakyRelu"}), ("negative", set())])
-def test_max_moves_ahead_of_monotone_steps_only(case, after_max):
+def test_max_moves_ahead_of_monotone_steps_only(case, after_max, opset):
     """max_k LeakyReLU(z_k + c) = LeakyReLU(max_k z_k + c) when c is the same along k (a bias,
     a per-point term) and the slope is not negative; then the outputs are bit-identical. An
     Add of something that varies along k stays before the max (its activation alone moves)."""
     from fpcc_ros.graph_rewrite import move_max_before_monotone
 
-    original, feed = _max_tail_model(case)
+    original, feed = _max_tail_model(case, opset)
     model, moved = move_max_before_monotone(onnx.load_from_string(original))
     onnx.checker.check_model(model)
     assert moved == int(bool(after_max))
