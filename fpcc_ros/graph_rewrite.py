@@ -108,18 +108,27 @@ def rewrite_global_max(model: Any) -> tuple[Any, int, int]:
         new_nodes[id(node)] = nodes + tail
     if not new_nodes:
         return model, 0, 0
-    dropped = {id(n) for n in remove}
+    _splice(model, new_nodes, remove, new_inits)
+    return model, fused, generic
+
+
+def _splice(model: Any, replacements: dict[int, list[Any]], removed: list[Any],
+            new_inits: list[Any]) -> None:
+    """Put each replaced node's new nodes where it stood (``replacements``: id(node) -> nodes),
+    drop ``removed``, add ``new_inits``, then whatever no longer feeds an output, and mark the
+    model rewritten."""
+    graph = model.graph
+    dropped = {id(n) for n in removed}
     rebuilt = []
     for n in graph.node:
-        if id(n) in dropped:
-            continue
-        rebuilt.extend(new_nodes.get(id(n), [n]))
+        if id(n) not in dropped:
+            rebuilt.extend(replacements.get(id(n), [n]))
     del graph.node[:]
     graph.node.extend(rebuilt)
     graph.initializer.extend(new_inits)
+    _drop_dead_nodes(graph)
     _drop_unused_initializers(graph)
     _mark_rewritten(model)
-    return model, fused, generic
 
 
 def _mark_rewritten(model: Any) -> None:
@@ -175,7 +184,7 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
         return name if keepdims else unsqueeze.input[0]
 
     replaced: dict[int, list[Any]] = {}
-    dropped: set[int] = set()
+    removed: list[Any] = []
     new_inits = []
     for k, pool in enumerate(graph.node):
         rank = ranks.get(pool.input[0]) if pool.input else None
@@ -197,22 +206,19 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
         while only_used_by(x, user) and x in producer:
             node = producer[x]
             if node.op_type in _MONOTONE_UNARY and float(_attr(node, "alpha", 0.0)) >= 0:
-                tail.append((node, None))
+                chain, other = node.input[0], None
             elif node.op_type == "Add":
-                a, b = node.input
-                side = same_along(b, axes, rank, keepdims)
-                if side is None:
-                    a, b = b, a
-                    side = same_along(b, axes, rank, keepdims)
-                if side is None or ranks.get(a) != rank:   # the chain's tensor is not broadcast
+                chain, b = node.input
+                other = same_along(b, axes, rank, keepdims)
+                if other is None:
+                    b, chain = chain, b
+                    other = same_along(b, axes, rank, keepdims)
+                if other is None or ranks.get(chain) != rank:  # the chain's tensor not broadcast
                     break
-                tail.append((node, side))
-                x = a
-                user = node
-                continue
             else:
                 break
-            x, user = node.input[0], node
+            tail.append((node, other))
+            x, user = chain, node
         if not tail:
             continue
         tag = f"fpcc_maxfirst{k}"
@@ -234,22 +240,10 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
                                               name=f"{tag}/Add{step}"))
             current = out
         replaced[id(pool)] = nodes
-        dropped.update(id(node) for node, _ in tail)
-        dropped.add(id(pool))
+        removed += [node for node, _ in tail]
     if not replaced:
         return model, 0
-    rebuilt = []
-    for n in graph.node:
-        if id(n) in replaced:
-            rebuilt.extend(replaced[id(n)])
-        elif id(n) not in dropped:
-            rebuilt.append(n)
-    del graph.node[:]
-    graph.node.extend(rebuilt)
-    graph.initializer.extend(new_inits)
-    _drop_dead_nodes(graph)
-    _drop_unused_initializers(graph)
-    _mark_rewritten(model)
+    _splice(model, replaced, removed, new_inits)
     return model, len(replaced)
 
 
