@@ -689,7 +689,8 @@ class BenchReport:
         lines.append(f"machine: {m.get('cpu')} , {m.get('cpus')} CPUs visible, onnxruntime "
                      f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}"
                      + (f", speed probe {m['speed_probe_ms']:.1f} ms (README table's days: "
-                        f"~{REFERENCE_PROBE_MS:g})" if m.get("speed_probe_ms") else ""))
+                        f"~{REFERENCE_PROBE_MS:g})" if m.get("speed_probe_ms") else "")
+                     + (f", malloc {m['heap']}" if m.get("heap") else ""))
         lines.append(f"model: {self.model.get('path')} ({self.model.get('name')})"
                      + ("  UNTRAINED: accuracy meaningless" if self.model.get("untrained") else ""))
         if self.postprocess:
@@ -832,7 +833,16 @@ def machine_info(pipeline: Any) -> dict[str, Any]:
             "python": platform.python_version(), "numpy": np.__version__,
             "onnxruntime": ort.__version__, "providers": pipeline.model.active_providers,
             "threads": getattr(pipeline.model, "threads", None), "platform": platform.platform(),
-            "speed_probe_ms": speed_probe()}
+            "speed_probe_ms": speed_probe(), "heap": heap_setting()}
+
+
+def heap_setting() -> str:
+    """How this process's malloc treats freed frame memory (fpcc_ros.heap): `fpcc` and the node
+    keep it; another process embedding the pipeline pays page faults on every frame."""
+    from fpcc_ros import heap
+
+    return ("retains freed memory (fpcc_ros.heap)" if heap.retained
+            else "returns freed memory to the kernel (C library defaults)")
 
 
 def model_info(pipeline: Any) -> dict[str, Any]:

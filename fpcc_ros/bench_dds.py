@@ -42,6 +42,16 @@ def node_rss_mb(pid: int) -> tuple[float, float]:
     return values["VmRSS"], values["VmHWM"]
 
 
+def minor_faults(pid: int) -> int | None:
+    """A process's minor page faults so far (/proc/<pid>/stat field 10): memory the kernel had to
+    map and zero, which per frame should be near 0 (fpcc_ros.heap)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return int(stat.rsplit(")", 1)[1].split()[7])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def parse_node_log(log: str) -> dict[str, Any]:
     """The node's exit totals and its last reported receive-to-publish median latency."""
     out: dict[str, Any] = {}
@@ -167,6 +177,7 @@ def run_rate(clouds: Sequence[Any], rate_hz: float, seconds: float, node_args: S
                 with probe._lock:
                     probe.arrivals.clear()
                 pid = node.proc.pid
+                faults_before = minor_faults(pid)
                 start = time.perf_counter()
                 next_rss, i = start, 0
                 while True:
@@ -189,19 +200,23 @@ def run_rate(clouds: Sequence[Any], rate_hz: float, seconds: float, node_args: S
                 last = max(sent)
                 probe.wait_output(last, 5.0)  # the frame in flight at the end comes out
                 peak = node_rss_mb(pid)[1]
+                faults_after = minor_faults(pid)
             finally:
                 probe.close()
             exit_code = node.stop()
             log = node.log()
     finally:
         rclpy.try_shutdown(context=context)
+    faults = None if faults_before is None or faults_after is None \
+        else faults_after - faults_before
     return summarise(rate_hz, seconds=elapsed, sent=sent, arrivals=probe.arrivals, rss=rss,
-                     peak_rss_mb=peak, log=log, exit_code=exit_code)
+                     peak_rss_mb=peak, log=log, exit_code=exit_code, minor_faults=faults)
 
 
 def summarise(rate_hz: float, seconds: float, sent: dict[int, float],
               arrivals: dict[int, dict[str, float]], rss: list[tuple[float, float]],
-              peak_rss_mb: float, log: str, exit_code: int | None) -> dict[str, Any]:
+              peak_rss_mb: float, log: str, exit_code: int | None,
+              minor_faults: int | None = None) -> dict[str, Any]:
     """Latency, rate, drops and queue check from send and arrival times (all perf_counter s)."""
     complete = {s: max(a.values()) for s, a in arrivals.items()
                 if len(a) == len(OUTPUTS) and s in sent}
@@ -235,6 +250,8 @@ def summarise(rate_hz: float, seconds: float, sent: dict[int, float],
         "verdict": verdict,
         "node_rss_mb": _q(np.array(rss_values)) if rss_values else {},
         "node_rss_peak_mb": peak_rss_mb, "node": parse_node_log(log), "node_exit_code": exit_code,
+        "node_minor_faults_per_output": minor_faults / len(order)
+        if minor_faults is not None and order else None,
     }
 
 
@@ -297,18 +314,21 @@ def dds_table(dds: dict[str, Any]) -> str:
              "last output received"]
     head = (f"{'rate':>6} {'sent':>5} {'out':>5} {'out Hz':>7} {'dropped':>7} {'lat med':>8} "
             f"{'lat p90':>8} {'lat max':>8} {'node med':>8} {'period':>7} {'age trend':>10} "
-            f"{'RSS med':>8} {'RSS peak':>8}  verdict")
+            f"{'RSS med':>8} {'RSS peak':>8} {'faults':>7}  verdict")
     lines += [head, "-" * len(head)]
     for r in dds["rates"]:
         lat, rss = r["latency_ms"], r["node_rss_mb"]
         node_med = r["node"].get("node_latency_median_ms")
+        faults = r.get("node_minor_faults_per_output")
         lines.append(
             f"{r['rate_hz']:>4g}Hz {r['frames_sent']:>5} {r['outputs']:>5} {r['output_rate_hz']:>7.2f} "
             f"{r['dropped']:>7} {lat.get('median', float('nan')):>8.0f} {lat.get('p90', float('nan')):>8.0f} "
             f"{lat.get('max', float('nan')):>8.0f} "
             f"{(f'{node_med:.0f}' if node_med is not None else '-'):>8} "
             f"{r['processing_period_ms']:>7.0f} {r['age_trend_ms_per_s']:>8.1f}/s "
-            f"{rss.get('median', float('nan')):>8.0f} {r['node_rss_peak_mb']:>8.0f}  {r['verdict']}")
+            f"{rss.get('median', float('nan')):>8.0f} {r['node_rss_peak_mb']:>8.0f} "
+            f"{(f'{faults:.0f}' if faults is not None else '-'):>7}  {r['verdict']}")
     lines.append("ms unless noted; 'node med' = the node's own receive-to-publish median (its "
-                 "log); age trend = slope of frame age over the run (a queue grows it)")
+                 "log); age trend = slope of frame age over the run (a queue grows it); faults = "
+                 "the node's minor page faults per output frame (memory mapped afresh)")
     return "\n".join(lines)

@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from fpcc_ros.heap import retain_freed_memory
+
 COMMANDS = {
     "segment": ("segment", "segment a bag / NPZ / PLY / PCD / TXT file, write labelled output"),
     "demo": ("demo", "start the node, replay the demo bag through it, record, summarise, render"),
@@ -40,6 +42,7 @@ def _module(name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
+    retain_freed_memory()  # before any thread starts: see fpcc_ros.heap
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]
     parser = build_parser()

@@ -7,9 +7,16 @@ never works through a queue of stale frames (dropped frames are counted and repo
 """
 from __future__ import annotations
 
-import math
-import os
-import sys
+# First, before numpy's and rclpy's threads exist: one malloc arena for all threads, so that the
+# worker's frames reuse freed memory (fpcc_ros.heap); a thread that allocated earlier keeps an
+# arena of its own, which the worker could be given.
+from fpcc_ros.heap import retain_freed_memory
+
+retain_freed_memory()
+
+import math  # noqa: E402 - after the malloc settings
+import os  # noqa: E402
+import sys  # noqa: E402
 import threading
 import time
 from collections import deque

@@ -185,6 +185,30 @@ def test_dds_summary_tells_a_queue_from_dropping(queue):
         assert r["no_queue"] is True
 
 
+def test_dds_summary_gives_the_nodes_page_faults_per_output_frame():
+    sent, arrivals = _timings(rate=5, seconds=4, process_s=0.1, queue=False)
+    r = summarise(5, 4.0, sent, arrivals, rss=[], peak_rss_mb=300.0, log="", exit_code=0,
+                  minor_faults=4000)
+    assert r["outputs"] == 20
+    assert r["node_minor_faults_per_output"] == pytest.approx(200.0)
+    assert summarise(5, 4.0, sent, arrivals, rss=[], peak_rss_mb=300.0, log="",
+                     exit_code=0)["node_minor_faults_per_output"] is None
+
+
+def test_minor_faults_reads_this_process_and_grows_with_fresh_memory():
+    import os
+
+    import numpy as np
+
+    from fpcc_ros.bench_dds import minor_faults
+
+    before = minor_faults(os.getpid())
+    touched = np.ones(64 << 20, np.uint8)   # 64 MB mapped afresh: beyond any kept free memory
+    after = minor_faults(os.getpid())
+    assert before is not None and after - before >= 16, (before, after, touched[0])
+    assert minor_faults(2 ** 22 + 12345) is None   # no such process
+
+
 def test_parse_node_log():
     log = ("[INFO] 12 frames out, 3 stale dropped, 0 invalid, 0 failed; latency median 181 ms, "
            "last 20 instances\n[INFO] 30 frames out ...; latency median 175.5 ms, last 19\n"
