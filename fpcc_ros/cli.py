@@ -25,11 +25,20 @@ COMMANDS = {
     "part-info": ("part_info", "d_max of a part mesh and a suggested part_radius"),
 }
 
+# Commands that segment frame after frame in this process keep freed frame memory for the next
+# frame (fpcc_ros.heap); training and scene generation keep the C library's defaults, whose
+# per-thread arenas suit torch's and pybullet's threads.
+RETAIN_FREED_MEMORY = ("segment", "eval", "calibrate", "bench")
+
+
+def _chosen(argv: list[str]) -> str | None:
+    return next((a for a in argv if a in COMMANDS), None)
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fpcc", description=__doc__.splitlines()[0])
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    chosen = next((a for a in sys.argv[1:] if a in COMMANDS), None)
+    chosen = _chosen(sys.argv[1:])
     for name, (module, help_text) in COMMANDS.items():
         sub = subparsers.add_parser(name, help=help_text, description=help_text)
         if name == chosen:  # only the chosen command's module is imported
@@ -42,9 +51,10 @@ def _module(name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    retain_freed_memory()  # before any thread starts: see fpcc_ros.heap
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]
+    if _chosen(sys.argv[1:]) in RETAIN_FREED_MEMORY:
+        retain_freed_memory()  # before the command's imports start threads: see fpcc_ros.heap
     parser = build_parser()
     args = parser.parse_args()
     if not args.command:

@@ -56,3 +56,20 @@ def test_the_bench_reports_whether_the_settings_apply(monkeypatch):
     assert "returns freed memory" in heap_setting()
     monkeypatch.setattr(heap, "retained", True)
     assert "retains freed memory" in heap_setting()
+
+
+@pytest.mark.parametrize("argv, retains", [
+    (["bench", "--no-such-option"], True),
+    (["segment", "--no-such-option"], True),
+    (["part-info", "--no-such-option"], False),   # like train and synth: glibc's defaults
+])
+def test_fpcc_keeps_freed_memory_only_for_the_commands_that_segment_frames(monkeypatch, argv,
+                                                                          retains):
+    from fpcc_ros import cli
+
+    calls = []
+    monkeypatch.setattr(cli, "retain_freed_memory", lambda: calls.append(True))
+    monkeypatch.setattr(sys, "argv", ["fpcc"])
+    with pytest.raises(SystemExit):   # argparse rejects the option after the decision
+        cli.main(argv)
+    assert bool(calls) is retains
