@@ -186,10 +186,10 @@ def block_knn_graphs(xyz: np.ndarray, blocks: list[np.ndarray], k: int,
         if m <= k:
             graphs.append(knn_graph(xyz[block], k, workers))
             continue
-        pts = xyz[block]
+        pts = np.take(xyz, block, axis=0)
         local[block] = np.arange(m)
-        graph = local[idx[block, :k]]               # -1 where a neighbour is outside the block
-        inner = unique[block] & (graph >= 0).all(axis=1)
+        graph = np.take(local, np.take(idx, block, axis=0)[:, :k])  # -1: outside the block
+        inner = unique[block] & (graph.min(axis=1) >= 0)
         rest = np.flatnonzero(~inner)
         if len(rest):
             _, near = cKDTree(pts).query(pts[rest], k=k, workers=workers)

@@ -34,7 +34,7 @@ def nms_centers(xyz: np.ndarray, scores: np.ndarray, threshold: float,
     candidates = np.flatnonzero(scores > threshold)
     if len(candidates) == 0:
         return candidates
-    pts = np.asarray(xyz, dtype=np.float64)[candidates]
+    pts = np.take(np.asarray(xyz, dtype=np.float64), candidates, axis=0)
     work = np.array(scores[candidates], dtype=np.float64)  # -inf once suppressed or kept
     r2 = float(radius) * float(radius)
     starts = np.arange(0, len(pts), NMS_CHUNK)

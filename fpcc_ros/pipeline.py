@@ -175,14 +175,14 @@ class _BlockRun:
                           cfg: PipelineConfig) -> np.ndarray:
         """The embedding standing for each seen center in this pass: its own, or with
         ``center_prototype`` > 0 the mean of its like neighbours (see center_prototypes)."""
-        return center_prototypes(xyz[self.ext], self.embedding, seen[1],
+        return center_prototypes(np.take(xyz, self.ext, axis=0), self.embedding, seen[1],
                                  cfg.center_prototype * cfg.part_radius)
 
     def assign(self, xyz: np.ndarray, centers: np.ndarray, ranks: np.ndarray,
                center_embedding: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
         """Global labels (center rank + 1, 0 = none) for the core points."""
         local = assign_to_center_points(
-            xyz[self.core], self.embedding[:len(self.core)], xyz[centers[ranks]],
+            np.take(xyz, self.core, axis=0), self.embedding[:len(self.core)], xyz[centers[ranks]],
             center_embedding, cfg.part_radius, cfg.feature_gate)
         global_ids = np.concatenate([[0], ranks + 1]).astype(np.int32)
         return global_ids[local]
@@ -301,7 +301,7 @@ class Pipeline:
         # turned into the camera's view, as the network was trained (distances, and so NMS and
         # clustering, are unchanged; labels and centroids stay in the cloud's frame)
         view_axis = detect_view_axis(pts) if cfg.view_axis == "auto" else cfg.view_axis
-        net_xyz = to_camera(pts[keep], view_axis)
+        net_xyz = to_camera(np.take(pts, keep, axis=0), view_axis)
         clock.lap("downsample")
 
         # 2b. the floor around the tote (largest plane) carries no instance: skip it
@@ -318,12 +318,15 @@ class Pipeline:
         cfg = self.config
         if len(candidates) == 0:
             return []
-        pts = xyz[candidates]
+        # rows of (n, 3) arrays are gathered with np.take throughout: ~3x faster than fancy
+        # indexing for 24-byte rows (24.6k of 300k rows: 0.12 vs 0.43 ms)
+        pts = np.take(xyz, candidates, axis=0)
+        cols = np.ascontiguousarray(pts.T)
         halo = cfg.block_halo * cfg.part_radius
         cores, exts = [], []
         for core in _blocks(pts, cfg):
-            lo, hi = pts[core].min(axis=0) - halo, pts[core].max(axis=0) + halo
-            inside = ((pts >= lo) & (pts <= hi)).all(axis=1)
+            core_pts = np.take(pts, core, axis=0)
+            inside = _in_box(cols, core_pts.min(axis=0) - halo, core_pts.max(axis=0) + halo)
             inside[core] = False
             cores.append(core)
             exts.append(np.concatenate([core, np.flatnonzero(inside)]))
@@ -332,8 +335,9 @@ class Pipeline:
         width = max(card.k, card.knn_reach)
         knns = [select_neighbours(g, card.k, card.knn_near, width) for g in
                 block_knn_graphs(pts, exts, width, self._knn_workers)]
-        return [(candidates[core], candidates[ext], block_features(pts[ext], cfg.part_radius)[None],
-                 knn[None]) for core, ext, knn in zip(cores, exts, knns)]
+        return [(candidates[core], candidates[ext],
+                 block_features(np.take(pts, ext, axis=0), cfg.part_radius)[None], knn[None])
+                for core, ext, knn in zip(cores, exts, knns)]
 
     def _run_block(self, core: np.ndarray, ext: np.ndarray, feats: np.ndarray,
                    knn: np.ndarray) -> _BlockRun:
@@ -346,6 +350,17 @@ class Pipeline:
 def _blocks(xyz: np.ndarray, cfg: PipelineConfig) -> list[np.ndarray]:
     split = balanced_blocks if cfg.block_split == "balanced" else spatial_blocks
     return split(xyz, cfg.block_size)
+
+
+def _in_box(cols: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which points (``cols``: x, y, z rows) lie in the box [lo, hi]: column by column, ~13x
+    faster than ``((pts >= lo) & (pts <= hi)).all(axis=1)`` (a reduction over an axis of 3)."""
+    inside = cols[0] >= lo[0]
+    inside &= cols[0] <= hi[0]
+    for d in (1, 2):
+        inside &= cols[d] >= lo[d]
+        inside &= cols[d] <= hi[d]
+    return inside
 
 
 def _valid_points(xyz: np.ndarray, roi_min: tuple | None, roi_max: tuple | None) -> np.ndarray:
