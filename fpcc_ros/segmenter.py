@@ -9,14 +9,14 @@ from __future__ import annotations
 
 # First, before numpy's and rclpy's threads exist: one malloc arena for all threads, so that the
 # worker's frames reuse freed memory (fpcc_ros.heap); a thread that allocated earlier keeps an
-# arena of its own, which the worker could be given.
+# arena of its own, which the worker could be given. (The imports below come after it on purpose.)
 from fpcc_ros.heap import retain_freed_memory
 
 retain_freed_memory()
 
-import math  # noqa: E402 - after the malloc settings
-import os  # noqa: E402
-import sys  # noqa: E402
+import math
+import os
+import sys
 import threading
 import time
 from collections import deque
