@@ -40,12 +40,14 @@ METADATA_VALUE = "global-max-pool,max-first"
 
 
 def _attr(node: Any, name: str, default: Any = None) -> Any:
+    return _attributes(node).get(name, default)
+
+
+def _attributes(node: Any) -> dict[str, Any]:
+    """A node's attributes as make_node keyword arguments (to rebuild it elsewhere)."""
     from onnx import helper
 
-    for a in node.attribute:
-        if a.name == name:
-            return helper.get_attribute_value(a)
-    return default
+    return {a.name: helper.get_attribute_value(a) for a in node.attribute}
 
 
 def _reduce_axes(node: Any, inits: dict[str, np.ndarray]) -> list[int] | None:
@@ -176,10 +178,8 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
         unsqueeze = producer.get(name)
         if unsqueeze is None or unsqueeze.op_type != "Unsqueeze":
             return None
-        added = _attr(unsqueeze, "axes")
-        if added is None and len(unsqueeze.input) > 1 and unsqueeze.input[1] in consts:
-            added = consts[unsqueeze.input[1]].reshape(-1).tolist()
-        if added is None or sorted(int(a) % rank for a in added) != axes:
+        added = _reduce_axes(unsqueeze, consts)   # the same attribute / opset-18 input
+        if added is None or sorted(a % rank for a in added) != axes:
             return None
         return name if keepdims else unsqueeze.input[0]
 
@@ -222,16 +222,15 @@ def move_max_before_monotone(model: Any) -> tuple[Any, int]:
         if not tail:
             continue
         tag = f"fpcc_maxfirst{k}"
-        pool_kwargs = {a.name: helper.get_attribute_value(a) for a in pool.attribute}
         nodes = [helper.make_node(pool.op_type, [x] + list(pool.input[1:]), [f"{tag}_pooled"],
-                                  name=f"{tag}/pool", **pool_kwargs)]
+                                  name=f"{tag}/pool", **_attributes(pool))]
         current = f"{tag}_pooled"
         for step, (node, other) in enumerate(reversed(tail)):
             out = pool.output[0] if step == len(tail) - 1 else f"{tag}_{step}"
             if other is None:
                 nodes.append(helper.make_node(
                     node.op_type, [current], [out], name=f"{tag}/{node.op_type}{step}",
-                    **{a.name: helper.get_attribute_value(a) for a in node.attribute}))
+                    **_attributes(node)))
             else:
                 if not isinstance(other, str):
                     new_inits.append(numpy_helper.from_array(other, f"{tag}_c{step}"))

@@ -352,14 +352,17 @@ def _blocks(xyz: np.ndarray, cfg: PipelineConfig) -> list[np.ndarray]:
     return split(xyz, cfg.block_size)
 
 
-def _in_box(cols: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Which points (``cols``: x, y, z rows) lie in the box [lo, hi]: column by column, ~13x
-    faster than ``((pts >= lo) & (pts <= hi)).all(axis=1)`` (a reduction over an axis of 3)."""
-    inside = cols[0] >= lo[0]
-    inside &= cols[0] <= hi[0]
-    for d in (1, 2):
-        inside &= cols[d] >= lo[d]
-        inside &= cols[d] <= hi[d]
+def _in_box(cols: np.ndarray, lo: Any, hi: Any, inside: np.ndarray | None = None) -> np.ndarray:
+    """Which points (``cols``: x, y, z rows, or ``xyz.T``) lie in the box [lo, hi] (either corner
+    may be None: open on that side), and'ed into ``inside`` when given. Column by column: ~13x
+    faster than ``((pts >= lo) & (pts <= hi)).all(axis=1)``, a reduction over an axis of 3."""
+    if inside is None:
+        inside = np.ones(len(cols[0]), dtype=bool)
+    for d in range(3):
+        if lo is not None:
+            inside &= cols[d] >= lo[d]
+        if hi is not None:
+            inside &= cols[d] <= hi[d]
     return inside
 
 
@@ -369,15 +372,10 @@ def _valid_points(xyz: np.ndarray, roi_min: tuple | None, roi_max: tuple | None)
     Column by column: ``np.isfinite(xyz).all(axis=1)`` reduces over an axis of length 3 and is
     ~20x slower on a 640x480 cloud (2.8 ms vs 0.13 ms).
     """
-    valid = np.ones(len(xyz), dtype=bool)
-    for d in range(3):
-        col = xyz[:, d]
-        valid &= np.abs(col) < MAX_RANGE_M  # False for NaN/Inf and for sensor garbage
-        if roi_min is not None:
-            valid &= col >= roi_min[d]
-        if roi_max is not None:
-            valid &= col <= roi_max[d]
-    return np.flatnonzero(valid)
+    valid = np.abs(xyz[:, 0]) < MAX_RANGE_M  # False for NaN/Inf and for sensor garbage
+    for d in (1, 2):
+        valid &= np.abs(xyz[:, d]) < MAX_RANGE_M
+    return np.flatnonzero(_in_box(xyz.T, roi_min, roi_max, valid))
 
 
 def _bounded_downsample(xyz: np.ndarray, voxel: float, max_points: int
