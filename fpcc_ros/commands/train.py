@@ -21,6 +21,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init", default=None, metavar="MODEL",
                         help="start from weights: a .pt checkpoint, an exported .onnx (uses the .pt "
                         "beside it), or 'default' (models/fpcc_default.pt)")
+    parser.add_argument("--teacher", default=None, metavar="MODEL",
+                        help="also learn to match this trained net's embedding and center score "
+                        "at every point (distillation; same forms as --init): trains a narrower "
+                        "net cut by scripts/slice_net.py back to the teacher's accuracy in far "
+                        "fewer steps than the labels alone")
+    parser.add_argument("--distill", type=float, default=1.0,
+                        help="weight of the teacher-matching term (default 1)")
     parser.add_argument("--resume", action="store_true",
                         help="continue RUN_DIR/checkpoint_last.pt (same data, same batches)")
     parser.add_argument("--lr", type=float, default=1e-3)
@@ -73,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
             alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
             time_limit_min=args.time_limit, anneal_by_time=args.anneal_by_time,
             val_every=args.val_every, precision=args.precision, data=data,
+            teacher=str(args.teacher or ""), distill=args.distill,
             net=TINY if args.net == "tiny" else NetConfig())
         summary = train(config, args.data, args.out, val=args.val, init=args.init,
                         resume=args.resume, command=["fpcc", *sys.argv[1:]])

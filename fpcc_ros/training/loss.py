@@ -82,6 +82,20 @@ def center_loss(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return smooth_l1(target - predicted).mean()
 
 
+def distill_loss(embedding: torch.Tensor, center_score: torch.Tensor, teacher_embedding: torch.Tensor,
+                 teacher_score: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean over the real points of |e - e_teacher|^2 + (s - s_teacher)^2.
+
+    For training a narrower net from a trained one (``fpcc train --teacher``): every point gets a
+    128-d target, where L_EF's hinge is zero for most pairs once they sit inside eps1 / beyond
+    eps2, so the student learns the teacher's feature space in far fewer steps than from the
+    labels alone. The clustering only compares embeddings, so matching them is what matters.
+    """
+    de = (embedding - teacher_embedding)[valid]
+    ds = (center_score - teacher_score)[valid]
+    return (de * de).sum(dim=-1).mean() + (ds * ds).mean()
+
+
 def total_loss(loss_ef: torch.Tensor, loss_cs: torch.Tensor, alpha: float = ALPHA) -> torch.Tensor:
     """L = L_EF + alpha L_CS."""
     return loss_ef + alpha * loss_cs

@@ -27,12 +27,12 @@ import torch
 from fpcc_ros.onnx_model import default_model_path
 from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
     load_scene, scene_blocks
-from fpcc_ros.training.loss import EPS1, EPS2, batch_loss
+from fpcc_ros.training.loss import EPS1, EPS2, batch_loss, distill_loss
 from fpcc_ros.training.model import FPCCNet, NetConfig
 
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
-HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "val_loss", "val_loss_ef",
+HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss", "val_loss_ef",
                   "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
                   "val_precision_paper", "val_recall_paper", "seconds")
 
@@ -67,6 +67,8 @@ class TrainConfig:
     feature_gate: float = 1.0
     min_points: int = 50
     precision: str = "auto"     # see resolve_precision
+    teacher: str = ""           # weights whose outputs the net also learns to match (distillation)
+    distill: float = 1.0        # weight of that term (loss.distill_loss) when there is a teacher
     data: DataConfig = DataConfig()
     net: NetConfig = NetConfig()
 
@@ -394,6 +396,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     model = FPCCNet(config.net)
     if init_state is not None:
         model.load_state_dict(init_state["model"])
+    teacher = load_teacher(config.teacher, config.net) if config.teacher else None
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
 
     if not data:
@@ -409,7 +412,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
                   "part_radii": radii[:20]}
 
     epoch, skip, history, best = 0, 0, [], -math.inf
-    sums = {"loss": 0.0, "loss_ef": 0.0, "loss_cs": 0.0, "steps": 0}
+    sums = _zero_sums(teacher is not None)
     wall_before = 0.0
     if state is not None:
         model.load_state_dict(state["model"])
@@ -448,12 +451,21 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
             batch = collate(groups[step])
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.precision == "bf16"):
                 embedding, score = model(batch["features"], batch["knn"])
+                if teacher is not None:
+                    with torch.no_grad():
+                        target_embedding, target_score = teacher(batch["features"], batch["knn"])
             loss, loss_ef, loss_cs = batch_loss(embedding.float(), score.float(), batch,
                                                 config.alpha, config.eps1, config.eps2)
+            terms = {"loss_ef": loss_ef, "loss_cs": loss_cs}
+            if teacher is not None:
+                terms["loss_kd"] = distill_loss(embedding.float(), score.float(),
+                                                target_embedding.float(), target_score.float(),
+                                                batch["valid"])
+                loss = loss + config.distill * terms["loss_kd"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            for key, value in (("loss", loss), ("loss_ef", loss_ef), ("loss_cs", loss_cs)):
+            for key, value in {"loss": loss, **terms}.items():
                 sums[key] += value.item()
             sums["steps"] += 1
             bar.update(1)
@@ -463,7 +475,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
         if status == "time_limit":
             break
         steps = max(sums["steps"], 1)
-        row = {"epoch": epoch + 1, "lr": lr, **{k: sums[k] / steps for k in ("loss", "loss_ef", "loss_cs")}}
+        row = {"epoch": epoch + 1, "lr": lr, **{k: v / steps for k, v in sums.items() if k != "steps"}}
         validating = bool(val_scenes) and _validate_after(config, epoch + 1, out_of_time())
         if validating:
             try:
@@ -475,7 +487,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
         history.append(_plain(row))
         write_history(run_dir, history)
         epoch, skip = epoch + 1, 0
-        sums = {"loss": 0.0, "loss_ef": 0.0, "loss_cs": 0.0, "steps": 0}
+        sums = _zero_sums(teacher is not None)
         # the best checkpoint is ranked among validated epochs when there is validation
         improved = (validating or not val_scenes) and _score(row) > best
         best = max(best, _score(row)) if improved else best
@@ -492,6 +504,26 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
             "last": history[-1] if history else None,
             "checkpoint_last": str(last_path), "checkpoint_best": str(best_path),
             "wall_time_s": wall_before + _now() - start_time}
+
+
+def _zero_sums(distilling: bool) -> dict[str, float]:
+    """The running sums of an epoch's loss terms."""
+    keys = ("loss", "loss_ef", "loss_cs") + (("loss_kd",) if distilling else ())
+    return {**dict.fromkeys(keys, 0.0), "steps": 0}
+
+
+def load_teacher(teacher: str | Path, net: NetConfig) -> FPCCNet:
+    """The frozen network a student learns to match (see loss.distill_loss): an ``--init``-style
+    name (a .pt, the .pt beside an .onnx, or 'default'). Its embedding must have the student's
+    width, since the student copies it value for value."""
+    model = model_from_checkpoint(load_checkpoint(resolve_init(teacher))).eval()
+    if model.config.embedding_dim != net.embedding_dim:
+        raise ValueError(f"--teacher {teacher}: its embedding has {model.config.embedding_dim} "
+                         f"dimensions, the trained net's {net.embedding_dim}; distil only between "
+                         "nets of one embedding width (scripts/slice_net.py keeps it)")
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    return model
 
 
 def _plain_state(model: FPCCNet, optimizer: torch.optim.Optimizer, config: TrainConfig, epoch: int,
