@@ -89,6 +89,27 @@ def column_bounds(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             np.array([xyz[:, d].max() for d in columns]))
 
 
+def tile_order(xyz: np.ndarray, per_tile: int) -> np.ndarray:
+    """A permutation of the rows that groups them into square tiles of about ``per_tile``
+    points over the cloud's two widest axes (rows keep their order within a tile).
+
+    Consecutive rows of a camera cloud are image rows: a run of a few hundred of them is a strip
+    across the whole bin, whose bounding box a small sphere anywhere along it reaches; a tile of
+    as many rows is compact. (The tile keys are 16-bit where they fit: numpy's stable sort is a
+    radix sort for those.)
+    """
+    n = len(xyz)
+    cols = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).T)
+    lo, hi = cols.min(axis=1), cols.max(axis=1)
+    wide = np.argsort(hi - lo)[1:]                       # the two widest axes
+    side = float(np.sqrt((hi - lo)[wide].prod() * per_tile / max(n, 1)))
+    if not side > 0:                                     # a point or a line: keep the order
+        return np.arange(n)
+    a, b = (((cols[axis] - lo[axis]) * (1.0 / side)).astype(np.int64) for axis in wide)
+    key = a * (int(b.max()) + 1) + b
+    return np.argsort(key.astype(np.int16) if key.max() < 2**15 else key, kind="stable")
+
+
 def _cut_longest_axis(xyz: np.ndarray, idx: np.ndarray, at: int) -> tuple[np.ndarray, np.ndarray]:
     """``idx`` split into its ``at`` lowest points along the axis of largest extent, and the rest."""
     pts = xyz[idx]

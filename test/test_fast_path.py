@@ -287,11 +287,14 @@ def test_split_prototypes_match_one_thread(three_threads, monkeypatch):
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("direct", [0, 2, 64])
 @pytest.mark.parametrize("chunk", [16, 1024])
-def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, chunk, monkeypatch):
+@pytest.mark.parametrize("tiled", [False, True])
+def test_nms_direct_and_tree_phases_match_the_literal_algorithm(seed, direct, chunk, tiled,
+                                                                monkeypatch):
     import fpcc_ros.nms as nms
 
     monkeypatch.setattr(nms, "DIRECT_CENTERS", direct)
     monkeypatch.setattr(nms, "NMS_CHUNK", chunk)   # one chunk, or many spread over the cloud
+    monkeypatch.setattr(nms, "TILED_CANDIDATES", 0 if tiled else 10**9)  # chunks of tiles
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(0, 1, (500, 3))
     scores = np.round(rng.uniform(0, 1, 500), 2)   # many ties: broken by index

@@ -93,3 +93,18 @@ def test_column_bounds_and_block_features_match_the_axis_reductions(dtype):
     shifted = xyz - xyz.min(axis=0)   # the definition, bit for bit
     want = np.concatenate([shifted / 0.05, shifted / shifted.max(axis=0)], axis=1)
     np.testing.assert_array_equal(block_features(xyz, 0.05), want.astype(np.float32))
+
+
+def test_tile_order_groups_image_rows_into_compact_tiles():
+    from fpcc_ros.features import tile_order
+
+    # a 64 x 48 grid in image order: 256 consecutive rows are a strip four image rows high
+    v, u = np.mgrid[0:48, 0:64]
+    xyz = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1).astype(np.float64)
+    order = tile_order(xyz, 256)
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(xyz)))   # a permutation
+    tiled = xyz[order]
+    for start in range(0, len(xyz) - 255, 256):
+        extent = np.ptp(tiled[start:start + 256], axis=0)
+        assert extent[0] < 40 and extent[1] < 40, (start, extent)         # a strip: 63 x 3
+    assert (tile_order(np.zeros((10, 3)), 4) == np.arange(10)).all()      # no extent: as is
