@@ -1,6 +1,6 @@
 """fpcc train --teacher: a (narrower) net learns a trained net's outputs as well as the labels."""
 import csv
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import pytest
 
@@ -64,7 +64,7 @@ def _gap_to_teacher(model: FPCCNet, teacher: FPCCNet, scenes) -> float:
 
 def test_a_student_with_a_teacher_ends_closer_to_it_than_one_without(scenes, teacher_path,
                                                                      tmp_path):
-    teacher = load_teacher(teacher_path, NARROW)
+    teacher = load_teacher(teacher_path, NARROW, SMALL)
     gaps = {}
     for name, source in (("labels", ""), ("teacher", str(teacher_path))):
         config = TrainConfig(epochs=4, batch=4, lr=3e-3, data=SMALL, net=NARROW, threads=1,
@@ -101,3 +101,12 @@ def test_a_teacher_of_another_embedding_width_is_refused(scenes, teacher_path, t
     assert fpcc(["train", "--data", str(scenes / "train"), "--out", str(tmp_path / "run"),
                  "--teacher", str(tmp_path / "wide.pt"), *TRAIN_ARGS]) == 2
     assert "embedding" in capsys.readouterr().err
+
+
+def test_a_teacher_trained_on_another_graph_is_refused(scenes, tmp_path, capsys):
+    other = {**asdict(SMALL), "k": SMALL.k * 2}
+    torch.save({"model": FPCCNet(TINY).state_dict(), "net": TINY.to_dict(),
+                "config": {"data": other}}, tmp_path / "other.pt")
+    assert fpcc(["train", "--data", str(scenes / "train"), "--out", str(tmp_path / "run"),
+                 "--teacher", str(tmp_path / "other.pt"), *TRAIN_ARGS]) == 2
+    assert f"k {SMALL.k * 2} (the run: {SMALL.k})" in capsys.readouterr().err

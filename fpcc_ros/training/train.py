@@ -32,8 +32,8 @@ from fpcc_ros.training.model import FPCCNet, NetConfig
 
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
-HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss", "val_loss_ef",
-                  "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
+HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss",
+                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
                   "val_precision_paper", "val_recall_paper", "seconds")
 
 
@@ -396,7 +396,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     model = FPCCNet(config.net)
     if init_state is not None:
         model.load_state_dict(init_state["model"])
-    teacher = load_teacher(config.teacher, config.net) if config.teacher else None
+    teacher = load_teacher(config.teacher, config.net, config.data) if config.teacher else None
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
 
     if not data:
@@ -512,15 +512,26 @@ def _zero_sums(distilling: bool) -> dict[str, float]:
     return {**dict.fromkeys(keys, 0.0), "steps": 0}
 
 
-def load_teacher(teacher: str | Path, net: NetConfig) -> FPCCNet:
+def load_teacher(teacher: str | Path, net: NetConfig, data: DataConfig) -> FPCCNet:
     """The frozen network a student learns to match (see loss.distill_loss): an ``--init``-style
     name (a .pt, the .pt beside an .onnx, or 'default'). Its embedding must have the student's
-    width, since the student copies it value for value."""
-    model = model_from_checkpoint(load_checkpoint(resolve_init(teacher))).eval()
+    width, since the student copies it value for value, and it must have been trained on the
+    run's graph: on other neighbourhoods its outputs are no target."""
+    state = load_checkpoint(resolve_init(teacher))
+    model = model_from_checkpoint(state).eval()
     if model.config.embedding_dim != net.embedding_dim:
         raise ValueError(f"--teacher {teacher}: its embedding has {model.config.embedding_dim} "
                          f"dimensions, the trained net's {net.embedding_dim}; distil only between "
                          "nets of one embedding width (scripts/slice_net.py keeps it)")
+    saved = state.get("config", {}).get("data")
+    if saved:
+        theirs = DataConfig.from_dict(saved)
+        differ = [f"{name} {getattr(theirs, name)} (the run: {getattr(data, name)})"
+                  for name in GRAPH_FIELDS if getattr(theirs, name) != getattr(data, name)]
+        if differ:
+            raise ValueError(f"--teacher {teacher} was trained with {', '.join(differ)}; "
+                             "train the student with the teacher's graph settings (leave them "
+                             "unset with --init, or pass the teacher's)")
     for parameter in model.parameters():
         parameter.requires_grad_(False)
     return model
