@@ -83,7 +83,7 @@ def spatial_blocks(xyz: np.ndarray, block_size: int) -> list[np.ndarray]:
 def column_bounds(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-column (min, max) of an (n, 3) array. ``xyz.min(axis=0)`` reduces such an array a
     row of three at a time, ~8-25x slower than a pass per column (2,048 rows: 80 vs 10 us; the
-    block splits, block features and halo boxes of a frame take ~50 of them)."""
+    block splits, block features and halo boxes of the bench's 20-part bin: 4.7 -> 2.4 ms)."""
     columns = range(xyz.shape[1])
     return (np.array([xyz[:, d].min() for d in columns]),
             np.array([xyz[:, d].max() for d in columns]))
@@ -99,6 +99,8 @@ def tile_order(xyz: np.ndarray, per_tile: int) -> np.ndarray:
     radix sort for those.)
     """
     n = len(xyz)
+    if n == 0:
+        return np.arange(0)
     cols = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).T)
     lo, hi = cols.min(axis=1), cols.max(axis=1)
     wide = np.argsort(hi - lo)[1:]                       # the two widest axes

@@ -1,6 +1,6 @@
 """Network-input helpers shared by runtime and training, on cases checked by hand."""
-import pytest
 import numpy as np
+import pytest
 
 from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
                                spatial_blocks, voxel_downsample)
@@ -108,3 +108,4 @@ def test_tile_order_groups_image_rows_into_compact_tiles():
         extent = np.ptp(tiled[start:start + 256], axis=0)
         assert extent[0] < 40 and extent[1] < 40, (start, extent)         # a strip: 63 x 3
     assert (tile_order(np.zeros((10, 3)), 4) == np.arange(10)).all()      # no extent: as is
+    assert len(tile_order(np.zeros((0, 3)), 4)) == 0

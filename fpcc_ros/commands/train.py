@@ -23,9 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "beside it), or 'default' (models/fpcc_default.pt)")
     parser.add_argument("--teacher", default=None, metavar="MODEL",
                         help="also learn to match this trained net's embedding and center score "
-                        "at every point (distillation; same forms as --init): trains a narrower "
-                        "net cut by scripts/slice_net.py back to the teacher's accuracy in far "
-                        "fewer steps than the labels alone")
+                        "at every point (distillation; same forms as --init), e.g. for a "
+                        "narrower net cut from it by scripts/slice_net.py")
     parser.add_argument("--distill", type=float, default=1.0,
                         help="weight of the teacher-matching term (default 1)")
     parser.add_argument("--resume", action="store_true",

@@ -88,8 +88,8 @@ def distill_loss(embedding: torch.Tensor, center_score: torch.Tensor, teacher_em
 
     For training a narrower net from a trained one (``fpcc train --teacher``): every point gets a
     128-d target, where L_EF's hinge is zero for most pairs once they sit inside eps1 / beyond
-    eps2, so the student learns the teacher's feature space in far fewer steps than from the
-    labels alone. The clustering only compares embeddings, so matching them is what matters.
+    eps2. (A net cut to EdgeConv 32 / global 512: 48 min from the labels gave validation F1
+    0.498, 81 more with the shipped net as teacher 0.525-0.537, the teacher 0.578.)
     """
     de = (embedding - teacher_embedding)[valid]
     ds = (center_score - teacher_score)[valid]
