@@ -13,17 +13,9 @@ from fpcc_ros.training.model import TINY, FPCCNet, NetConfig  # noqa: E402
 from fpcc_ros.training.train import (TrainConfig, load_checkpoint, load_teacher,  # noqa: E402
                                      model_from_checkpoint, train)
 from test_dataset import write_fake_scenes  # noqa: E402
-from test_export import SMALL, TRAIN_ARGS  # noqa: E402
+from test_export import SMALL, TRAIN_ARGS, _one_thread  # noqa: E402,F401 (one torch thread)
 
 NARROW = replace(TINY, edge_dim=TINY.edge_dim // 2)  # a student narrower than its teacher
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

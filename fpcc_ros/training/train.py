@@ -191,12 +191,9 @@ def data_config_for(init: str | Path | None, **explicit: Any) -> DataConfig:
     ``init`` weights' training run when there are any, else :class:`DataConfig`'s defaults (the
     shipped model's). An explicit graph setting that differs from the init weights' is a warning,
     not an error: retraining to a new graph from old weights is legitimate, just slower."""
-    base = DataConfig()
     init_path = resolve_init(init) if init is not None else None
-    if init_path is not None:
-        saved = load_checkpoint(init_path).get("config", {}).get("data")
-        if saved:
-            base = DataConfig.from_dict(saved)
+    base = (_trained_data(load_checkpoint(init_path)) if init_path is not None else None) \
+        or DataConfig()
     given = {name: value for name, value in explicit.items() if value is not None}
     for name in GRAPH_FIELDS:
         if init_path is not None and name in given and given[name] != getattr(base, name):
@@ -204,6 +201,12 @@ def data_config_for(init: str | Path | None, **explicit: Any) -> DataConfig:
                   f"weights' {getattr(base, name)}; the network will have to relearn its inputs "
                   f"(leave it out to keep the init's)", file=sys.stderr)
     return replace(base, **given)
+
+
+def _trained_data(state: dict[str, Any]) -> DataConfig | None:
+    """The data settings a checkpoint's weights were trained with (None: not recorded)."""
+    saved = state.get("config", {}).get("data")
+    return DataConfig.from_dict(saved) if saved else None
 
 
 def _plain(value: Any) -> Any:
@@ -523,9 +526,8 @@ def load_teacher(teacher: str | Path, net: NetConfig, data: DataConfig) -> FPCCN
         raise ValueError(f"--teacher {teacher}: its embedding has {model.config.embedding_dim} "
                          f"dimensions, the trained net's {net.embedding_dim}; distil only between "
                          "nets of one embedding width (scripts/slice_net.py keeps it)")
-    saved = state.get("config", {}).get("data")
-    if saved:
-        theirs = DataConfig.from_dict(saved)
+    theirs = _trained_data(state)
+    if theirs is not None:
         differ = [f"{name} {getattr(theirs, name)} (the run: {getattr(data, name)})"
                   for name in GRAPH_FIELDS if getattr(theirs, name) != getattr(data, name)]
         if differ:
