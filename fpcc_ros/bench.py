@@ -686,7 +686,10 @@ class BenchReport:
     def summary(self) -> str:
         lines = []
         m = self.machine
-        lines.append(f"machine: {m.get('cpu')} , {m.get('cpus')} CPUs visible, onnxruntime "
+        vector = m.get("cpu_vector")
+        lines.append(f"machine: {m.get('cpu')}"
+                     + (f" ({' '.join(vector) or 'no AVX2'})" if vector is not None else "")
+                     + f", {m.get('cpus')} CPUs visible, onnxruntime "
                      f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}"
                      + (f", speed probe {m['speed_probe_ms']:.1f} ms (README table's days: "
                         f"~{REFERENCE_PROBE_MS:g})" if m.get("speed_probe_ms") else "")
@@ -813,15 +816,33 @@ def speed_probe(repeats: int = 15) -> float:
     return float(np.median(times[1:]))  # the first pass warms caches
 
 
+# The vector extensions that decide the network's speed on a CPU. The README table's host had
+# AVX-512 with BF16 (the shipped model trained in bf16 on it); on a host of this VM without
+# AVX-512 (AVX2 only) the whole path ran about 2x slower (2026-12-02: cluttered bin 381 against
+# 179 ms, ONNX 233 against 93): another machine, not a busy one.
+VECTOR_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8")
+
+
+def cpu_description(cpuinfo: str) -> tuple[str, list[str]]:
+    """The first CPU's model name and which of :data:`VECTOR_FLAGS` it has, from the text of
+    /proc/cpuinfo."""
+    model, flags = "", set()
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and not model:
+            model = value.strip()
+        elif key.strip() == "flags" and not flags:
+            flags = set(value.split())
+    return model, [f for f in VECTOR_FLAGS if f in flags]
+
+
 def machine_info(pipeline: Any) -> dict[str, Any]:
     import onnxruntime as ort
 
-    cpu = platform.processor() or ""
+    cpu, vector = platform.processor() or "", None
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+        model, vector = cpu_description(Path("/proc/cpuinfo").read_text())
+        cpu = model or cpu
     except OSError:
         pass
     try:
@@ -829,7 +850,7 @@ def machine_info(pipeline: Any) -> dict[str, Any]:
     except AttributeError:
         cpus = os.cpu_count()
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    return {"cpu": cpu, "cpus": cpus, "load_avg_1m_at_start": load[0] if load else None,
+    return {"cpu": cpu, "cpu_vector": vector, "cpus": cpus, "load_avg_1m_at_start": load[0] if load else None,
             "python": platform.python_version(), "numpy": np.__version__,
             "onnxruntime": ort.__version__, "providers": pipeline.model.active_providers,
             "threads": getattr(pipeline.model, "threads", None), "platform": platform.platform(),
@@ -962,6 +983,12 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         report.notes.append(f"the machine was busy at the start (1-minute load "
                             f"{report.machine['load_avg_1m_at_start']:.1f} on "
                             f"{report.machine['cpus']} CPUs): timings are inflated")
+    vector = report.machine.get("cpu_vector")
+    if vector is not None and "avx512f" not in vector:
+        report.notes.append("this CPU has no AVX-512 (the README table's host had AVX-512 with "
+                            "BF16): the network and the memory-bound stages run about 2x "
+                            "slower on such a host, whatever the load; compare ratios within "
+                            "one run, not with the table")
     probe = report.machine.get("speed_probe_ms")
     if probe and probe > SLOW_PROBE_FACTOR * REFERENCE_PROBE_MS:
         report.notes.append(f"this machine ran the speed probe in {probe:.1f} ms against "

@@ -300,3 +300,31 @@ def test_a_model_without_the_latest_graph_rewrite_is_named(tiny_scene, tiny_pipe
         assert "optimize_onnx" not in notes
     else:
         assert hint in notes and "scripts/optimize_onnx.py" in notes
+
+
+CPUINFO = """processor\t: 0
+model name\t: AMD EPYC
+flags\t\t: fpu sse2 avx fma avx2 bmi2 {extra}
+processor\t: 1
+model name\t: AMD EPYC
+flags\t\t: fpu sse2 avx fma avx2 bmi2 avx512f avx512_bf16
+"""
+
+
+def test_cpu_description_reads_the_first_cpus_vector_extensions():
+    assert bench.cpu_description(CPUINFO.format(extra="")) == ("AMD EPYC", ["avx2", "fma"])
+    model, vector = bench.cpu_description(CPUINFO.format(extra="avx512f avx512_vnni"))
+    assert vector == ["avx2", "fma", "avx512f", "avx512_vnni"]
+    assert bench.cpu_description("") == ("", [])
+
+
+def test_a_cpu_without_avx512_is_named_in_the_notes(tiny_scene, tiny_pipeline, monkeypatch):
+    """Timings from a host without AVX-512 are another machine's: the report says so; with
+    AVX-512, or where the flags are unknown, it says nothing."""
+    for vector, noted in ((["avx2", "fma"], True), (["avx2", "avx512f"], False), (None, False)):
+        monkeypatch.setattr(bench, "machine_info",
+                            lambda pipeline, vector=vector: {"cpu": "test", "cpus": 2,
+                                                             "cpu_vector": vector})
+        report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+        assert any("no AVX-512" in n for n in report.notes) == noted
+        assert ("(avx2" in report.summary()) == (vector is not None)
