@@ -609,7 +609,7 @@ class BenchReport:
                               "nms", "cluster", "labels", "encode", "total")
                   if any(s in r.stages_ms for r in self.scenes)]
         m = self.machine
-        out = [f"Machine: {m.get('cpu')}, {m.get('cpus')} CPUs; onnxruntime {m.get('onnxruntime')} "
+        out = [f"Machine: {_cpu_label(m)}, {m.get('cpus')} CPUs; onnxruntime {m.get('onnxruntime')} "
                f"{', '.join(m.get('providers') or [])}; model `{self.model.get('name')}`"
                + (" (untrained)" if self.model.get("untrained") else "")
                + (f", graph: {self.model['graph']}" if self.model.get("graph") else "")
@@ -686,10 +686,7 @@ class BenchReport:
     def summary(self) -> str:
         lines = []
         m = self.machine
-        vector = m.get("cpu_vector")
-        lines.append(f"machine: {m.get('cpu')}"
-                     + (f" ({' '.join(vector) or 'no AVX2'})" if vector is not None else "")
-                     + f", {m.get('cpus')} CPUs visible, onnxruntime "
+        lines.append(f"machine: {_cpu_label(m)}, {m.get('cpus')} CPUs visible, onnxruntime "
                      f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}"
                      + (f", speed probe {m['speed_probe_ms']:.1f} ms (README table's days: "
                         f"~{REFERENCE_PROBE_MS:g})" if m.get("speed_probe_ms") else "")
@@ -818,8 +815,8 @@ def speed_probe(repeats: int = 15) -> float:
 
 # The vector extensions that decide the network's speed on a CPU. The README table's host had
 # AVX-512 with BF16 (the shipped model trained in bf16 on it); on a host of this VM without
-# AVX-512 (AVX2 only) the whole path ran about 2x slower (2026-12-02: cluttered bin 381 against
-# 179 ms, ONNX 233 against 93): another machine, not a busy one.
+# AVX-512 (AVX2 only) the whole path ran 1.7-2x slower (2026-12-02, `fpcc bench --runs 3`:
+# cluttered bin 301 against 179 ms, ONNX 153-190 against 93): another machine, not a busy one.
 VECTOR_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8")
 
 
@@ -834,6 +831,13 @@ def cpu_description(cpuinfo: str) -> tuple[str, list[str]]:
         elif key.strip() == "flags" and not flags:
             flags = set(value.split())
     return model, [f for f in VECTOR_FLAGS if f in flags]
+
+
+def _cpu_label(machine: dict[str, Any]) -> str:
+    """The CPU's name with its vector extensions, e.g. "AMD EPYC (avx2 fma)"."""
+    vector = machine.get("cpu_vector")
+    return f"{machine.get('cpu')}" + (f" ({' '.join(vector) or 'no AVX2'})"
+                                      if vector is not None else "")
 
 
 def machine_info(pipeline: Any) -> dict[str, Any]:
@@ -986,9 +990,9 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
     vector = report.machine.get("cpu_vector")
     if vector is not None and "avx512f" not in vector:
         report.notes.append("this CPU has no AVX-512 (the README table's host had AVX-512 with "
-                            "BF16): the network and the memory-bound stages run about 2x "
-                            "slower on such a host, whatever the load; compare ratios within "
-                            "one run, not with the table")
+                            "BF16): the same code ran 1.7-2x slower end to end on such a host, "
+                            "whatever the load; compare ratios within one run, not with the "
+                            "table")
     probe = report.machine.get("speed_probe_ms")
     if probe and probe > SLOW_PROBE_FACTOR * REFERENCE_PROBE_MS:
         report.notes.append(f"this machine ran the speed probe in {probe:.1f} ms against "
