@@ -815,8 +815,9 @@ def speed_probe(repeats: int = 15) -> float:
 
 # The vector extensions that decide the network's speed on a CPU. The README table's host had
 # AVX-512 with BF16 (the shipped model trained in bf16 on it); on a host of this VM without
-# AVX-512 (AVX2 only) the whole path ran 1.7-2x slower (2026-12-02, `fpcc bench --runs 3`:
-# cluttered bin 301 against 179 ms, ONNX 153-190 against 93): another machine, not a busy one.
+# AVX-512 (AVX2 only) the whole path runs about 2x slower (2026-12-02, `fpcc bench --runs 3`:
+# cluttered bin 301 ms against the table's 179 with older code, which the exact changes since
+# took about 0.8x off): another machine, not a busy one.
 VECTOR_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8")
 
 
@@ -990,7 +991,7 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
     vector = report.machine.get("cpu_vector")
     if vector is not None and "avx512f" not in vector:
         report.notes.append("this CPU has no AVX-512 (the README table's host had AVX-512 with "
-                            "BF16): the same code ran 1.7-2x slower end to end on such a host, "
+                            "BF16): on such a host the code runs about 2x slower end to end, "
                             "whatever the load; compare ratios within one run, not with the "
                             "table")
     probe = report.machine.get("speed_probe_ms")
