@@ -855,7 +855,8 @@ def machine_info(pipeline: Any) -> dict[str, Any]:
     except AttributeError:
         cpus = os.cpu_count()
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    return {"cpu": cpu, "cpu_vector": vector, "cpus": cpus, "load_avg_1m_at_start": load[0] if load else None,
+    return {"cpu": cpu, "cpu_vector": vector, "cpus": cpus,
+            "load_avg_1m_at_start": load[0] if load else None,
             "python": platform.python_version(), "numpy": np.__version__,
             "onnxruntime": ort.__version__, "providers": pipeline.model.active_providers,
             "threads": getattr(pipeline.model, "threads", None), "platform": platform.platform(),
