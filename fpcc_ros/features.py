@@ -104,7 +104,7 @@ def tile_order(xyz: np.ndarray, per_tile: int) -> np.ndarray:
     cols = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).T)
     lo, hi = cols.min(axis=1), cols.max(axis=1)
     wide = np.argsort(hi - lo)[1:]                       # the two widest axes
-    side = float(np.sqrt((hi - lo)[wide].prod() * per_tile / max(n, 1)))
+    side = float(np.sqrt((hi - lo)[wide].prod() * per_tile / n))
     if not side > 0:                                     # a point or a line: keep the order
         return np.arange(n)
     a, b = (((cols[axis] - lo[axis]) * (1.0 / side)).astype(np.int64) for axis in wide)

@@ -313,7 +313,7 @@ flags\t\t: fpu sse2 avx fma avx2 bmi2 avx512f avx512_bf16
 
 def test_cpu_description_reads_the_first_cpus_vector_extensions():
     assert bench.cpu_description(CPUINFO.format(extra="")) == ("AMD EPYC", ["avx2", "fma"])
-    model, vector = bench.cpu_description(CPUINFO.format(extra="avx512f avx512_vnni"))
+    _, vector = bench.cpu_description(CPUINFO.format(extra="avx512f avx512_vnni"))
     assert vector == ["avx2", "fma", "avx512f", "avx512_vnni"]
     assert bench.cpu_description("") == ("", [])
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
-                               spatial_blocks, voxel_downsample)
+                               spatial_blocks, tile_order, voxel_downsample)
 
 
 def test_voxel_downsample_keeps_one_real_point_per_voxel_and_maps_back():
@@ -96,8 +96,6 @@ def test_column_bounds_and_block_features_match_the_axis_reductions(dtype):
 
 
 def test_tile_order_groups_image_rows_into_compact_tiles():
-    from fpcc_ros.features import tile_order
-
     # a 64 x 48 grid in image order: 256 consecutive rows are a strip four image rows high
     v, u = np.mgrid[0:48, 0:64]
     xyz = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1).astype(np.float64)

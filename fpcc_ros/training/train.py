@@ -33,8 +33,8 @@ from fpcc_ros.training.model import FPCCNet, NetConfig
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
 HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss",
-                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_precision", "val_recall", "val_mucov",
-                  "val_precision_paper", "val_recall_paper", "seconds")
+                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_precision", "val_recall",
+                  "val_mucov", "val_precision_paper", "val_recall_paper", "seconds")
 
 
 # Weight of the center-score loss in training. The paper's alpha = 3 goes with its L_EF, a plain
