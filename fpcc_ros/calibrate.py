@@ -27,11 +27,13 @@ class _MemoModel:
 
     def __init__(self, model: FpccModel):
         self.card, self._model, self._cache = model.card, model, {}
+        self.supports_global_stride = model.supports_global_stride
 
-    def run(self, features: np.ndarray, knn: np.ndarray):
-        key = (features.shape, features.tobytes()[:4096], float(features.sum()), int(knn.sum()))
+    def run(self, features: np.ndarray, knn: np.ndarray, global_stride: int = 1):
+        key = (features.shape, features.tobytes()[:4096], float(features.sum()), int(knn.sum()),
+               global_stride)
         if key not in self._cache:
-            self._cache[key] = self._model.run(features, knn)
+            self._cache[key] = self._model.run(features, knn, global_stride=global_stride)
         return self._cache[key]
 
 

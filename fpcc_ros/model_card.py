@@ -15,6 +15,7 @@ from fpcc_ros.features import FEATURE_NAMES
 
 CARD_FORMAT = "fpcc_ros/model-card/1"
 EMBEDDING_DIM = 128
+MAX_GLOBAL_STRIDE = 16   # beyond 8 the shipped net already lost 2.6 F1 points (README)
 
 
 class ModelCardError(ValueError):
@@ -37,6 +38,8 @@ class ModelCard:
     embedding_dim: int = EMBEDDING_DIM
     knn_near: int = 0    # 0 = plain kNN; else the dilated neighbourhood of features.neighbour_columns
     knn_reach: int = 0
+    global_stride: int = 1   # the global feature's max over every s-th point of a block (the
+    #   graph's optional global_stride input, graph_rewrite.add_global_stride); 1 = all, exact
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
     trained_on: dict[str, Any] = field(default_factory=dict)
@@ -130,6 +133,10 @@ def _check_values(card: ModelCard, path: Path) -> None:
         ("center_prototype", card.center_prototype,
          _number(card.center_prototype) and 0 <= card.center_prototype <= 2,
          "between 0 (the center point's own embedding) and 2 part radii"),
+        ("global_stride", card.global_stride,
+         isinstance(card.global_stride, int) and not isinstance(card.global_stride, bool)
+         and 1 <= card.global_stride <= MAX_GLOBAL_STRIDE,
+         f"an integer from 1 (every point) to {MAX_GLOBAL_STRIDE}"),
         ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
          f"{list(FEATURE_NAMES)} (this runtime's features)"),
     ]

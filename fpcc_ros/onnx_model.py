@@ -14,6 +14,9 @@ from fpcc_ros.model_card import ModelCard, ModelCardError, card_path_for, load_c
 
 INPUTS = ("features", "knn")
 OUTPUTS = ("embedding", "center_score")
+# optional input (an initializer a run may override, default 1): the global feature's max over
+# every s-th point of a block; graph_rewrite.add_global_stride adds it
+STRIDE_INPUT = "global_stride"
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "fpcc_default.onnx"
 
 
@@ -53,6 +56,10 @@ class FpccModel:
         # exact graph rewrites applied by scripts/optimize_onnx.py (fpcc_ros.graph_rewrite)
         self.graph_notes: str = self.session.get_modelmeta().custom_metadata_map.get(
             "fpcc_graph", "")
+        # the optional input of graph_rewrite.add_global_stride (onnxruntime lists it among
+        # the initializers a run may override, not among the inputs)
+        self.supports_global_stride: bool = STRIDE_INPUT in {
+            i.name for i in self.session.get_overridable_initializers()}
         self._check_signature()
         self._check_run()
 
@@ -142,7 +149,18 @@ class FpccModel:
                                  f"{card_path_for(self.path)} says: " + "; ".join(problems)
                                  + ". Re-export with `fpcc export`.")
 
-    def run(self, features: np.ndarray, knn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One block (or a batch of equal-sized blocks): (B,N,6), (B,N,K) -> (B,N,128), (B,N)."""
-        embedding, score = self.session.run(list(OUTPUTS), {"features": features, "knn": knn})
+    def run(self, features: np.ndarray, knn: np.ndarray,
+            global_stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """One block (or a batch of equal-sized blocks): (B,N,6), (B,N,K) -> (B,N,128), (B,N).
+
+        ``global_stride`` > 1 takes the global feature's max over every s-th point (a model
+        whose graph has the input: :attr:`supports_global_stride`)."""
+        feed = {"features": features, "knn": knn}
+        if global_stride != 1:
+            if not self.supports_global_stride:
+                raise ValueError(f"global_stride={global_stride}: {self.path} has no "
+                                 f"'{STRIDE_INPUT}' input; run scripts/optimize_onnx.py on it, "
+                                 "or use global_stride 1")
+            feed[STRIDE_INPUT] = np.array([global_stride], dtype=np.int64)
+        embedding, score = self.session.run(list(OUTPUTS), feed)
         return embedding, score

@@ -17,7 +17,7 @@ from fpcc_ros.clustering import (assign_to_center_points, center_prototypes, clo
 from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs, column_bounds,
                                dominant_plane, plane_tolerance, select_neighbours, spatial_blocks,
                                voxel_downsample)
-from fpcc_ros.model_card import ModelCard
+from fpcc_ros.model_card import MAX_GLOBAL_STRIDE, ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
 from fpcc_ros.view import VIEW_AXES, detect_view_axis, to_camera
@@ -48,6 +48,8 @@ class PipelineConfig:
     #   this many part radii (clustering.center_prototypes); 0 = its own, as in the paper
     label_smoothing: int = 1   # passes of majority vote over the network's kNN graph after
     #   clustering (0 = off): +3-8 points P, +2-4 R on the IPA test piles, per-part and zero-shot
+    global_stride: int = 1     # the network's global feature: max over every s-th point of a
+    #   block (1 = all, exact; needs a model with the input, FpccModel.supports_global_stride)
     voxel_factor: float = 0.08
     block_size: int = 4096
     block_halo: float = 0.5   # context around each block, in part radii (0.5: as accurate as 1.0 on our validation scenes, 25% faster)
@@ -65,7 +67,7 @@ class PipelineConfig:
         base = cls(part_radius=card.part_radius, screening_factor=card.screening_factor,
                    score_threshold=card.score_threshold, feature_gate=card.feature_gate,
                    center_merge=card.center_merge, center_prototype=card.center_prototype,
-                   voxel_factor=card.voxel_factor,
+                   global_stride=card.global_stride, voxel_factor=card.voxel_factor,
                    block_size=card.block_size)
         return base.replace(**overrides)
 
@@ -106,6 +108,9 @@ class PipelineConfig:
              "label_smoothing", "an integer from 0 (off) to 5 passes")
         need(_finite(self.center_prototype) and 0 <= self.center_prototype <= 2,
              "center_prototype", "between 0 (the center point's own embedding) and 2 part radii")
+        need(isinstance(self.global_stride, int) and not isinstance(self.global_stride, bool)
+             and 1 <= self.global_stride <= MAX_GLOBAL_STRIDE, "global_stride",
+             f"an integer from 1 (every point of a block, exact) to {MAX_GLOBAL_STRIDE}")
         need(isinstance(self.block_size, int) and self.block_size >= 32, "block_size", ">= 32")
         need(_finite(self.block_halo) and 0 <= self.block_halo <= 5, "block_halo",
              "between 0 and 5 part radii")
@@ -201,6 +206,11 @@ class Pipeline:
     def __init__(self, model: FpccModel, config: PipelineConfig | None = None):
         self.model = model
         self.config = config or PipelineConfig.from_card(model.card)
+        if self.config.global_stride != 1 and not getattr(model, "supports_global_stride", False):
+            raise ConfigError(f"global_stride={self.config.global_stride} is invalid for "
+                              f"{model.path}: its graph takes no global_stride input; run "
+                              "scripts/optimize_onnx.py on it (exact at stride 1), or set "
+                              "global_stride to 1")
         # kNN queries on the threads onnxruntime uses (they are idle while features are built)
         threads = int(getattr(model, "threads", 0) or 0)
         self._knn_workers = threads if threads > 0 else -1
@@ -343,7 +353,7 @@ class Pipeline:
     def _run_block(self, core: np.ndarray, ext: np.ndarray, feats: np.ndarray,
                    knn: np.ndarray) -> _BlockRun:
         """One network pass; the scores of the core points, the embeddings of all."""
-        emb, sc = self.model.run(feats, knn)
+        emb, sc = self.model.run(feats, knn, global_stride=self.config.global_stride)
         return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)],
                          neighbours=ext[knn[0, :len(core)]])
 

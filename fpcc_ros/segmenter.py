@@ -43,6 +43,7 @@ from msg_tools.msg_types import RCLPY
 from msg_tools.point_cloud2 import CloudFormatError
 
 from fpcc_ros.frame import process_cloud
+from fpcc_ros.model_card import MAX_GLOBAL_STRIDE
 from fpcc_ros.onnx_model import FpccModel, ModelLoadError, default_model_path
 from fpcc_ros.pipeline import AUTO_VOXEL, ConfigError, Pipeline, PipelineConfig
 
@@ -55,7 +56,7 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
                    "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype",
-                   "label_smoothing", "view_axis")
+                   "label_smoothing", "view_axis", "global_stride")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -121,6 +122,12 @@ PARAMS = (
            "Passes of majority vote over the network's neighbourhood graph after clustering: a "
            "point takes the label most of its neighbours carry (removes stray assignments "
            "across part boundaries). 0 = off.", 0, 5),
+    _Param("global_stride", ParameterType.PARAMETER_INTEGER,
+           "The network's global feature (a max over each block) taken over every s-th point "
+           "of the block instead of all: 1 = every point, exact; 4 cuts the network's time by "
+           "about a sixth at no measured accuracy cost for the shipped model (8 cost 2.6 F1 "
+           "points). Needs a model whose graph takes it (scripts/optimize_onnx.py). Default: "
+           "the model card's.", 1, MAX_GLOBAL_STRIDE),
     _Param("view_axis", ParameterType.PARAMETER_STRING,
            "The direction the camera looks along in the cloud's frame: +z (a camera optical "
            "frame), -z (a z-up world or robot-base frame, camera above the bin), +x, -x, +y, -y; "
@@ -218,6 +225,7 @@ class SegmenterNode(Node):
             "center_prototype": card.center_prototype if card else 0.0,
             "label_smoothing": PipelineConfig.label_smoothing,
             "view_axis": PipelineConfig.view_axis,
+            "global_stride": card.global_stride if card else 1,
             "threads": 0, "max_input_age": 0.0,
         }
         for p in PARAMS:

@@ -299,7 +299,8 @@ def test_postprocess_case_uses_fixed_nms_settings_not_the_cards(tiny_scene, tiny
 
 @pytest.mark.parametrize("graph, hint", [("", "not rewritten"),
                                          ("global-max-pool", "predates the max-first"),
-                                         ("global-max-pool,max-first", None)])
+                                         ("global-max-pool,max-first", "no global_stride"),
+                                         ("global-max-pool,max-first,global-stride", None)])
 def test_a_model_without_the_latest_graph_rewrite_is_named(tiny_scene, tiny_pipeline,
                                                            monkeypatch, graph, hint):
     monkeypatch.setattr(tiny_pipeline.model, "graph_notes", graph)
@@ -337,3 +338,13 @@ def test_a_cpu_without_avx512_is_named_in_the_notes(tiny_scene, tiny_pipeline, m
         assert any("no AVX-512" in n for n in report.notes) == noted
         named = vector is not None
         assert ("(avx2" in report.summary()) == named and ("(avx2" in report.markdown()) == named
+
+
+def test_a_global_stride_is_named_in_the_report(tiny_scene, tiny_pipeline, monkeypatch):
+    """An approximate network is never reported as the plain one: the stride in use is on the
+    model line of the summary and on the markdown's machine line."""
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+    assert "every 4th point" not in report.summary() + report.markdown()
+    report.config["global_stride"] = 4
+    assert "global feature over every 4th point" in report.summary()
+    assert "global feature over every 4th point" in report.markdown()

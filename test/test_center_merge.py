@@ -31,7 +31,7 @@ class RodOracle:
         self.card = ModelCard(name="oracle", k=8, part_radius=R, block_size=4096)
         self.origin, self.labels, self.spacing = xyz.min(axis=0), labels, spacing
 
-    def run(self, features: np.ndarray, knn: np.ndarray):
+    def run(self, features: np.ndarray, knn: np.ndarray, global_stride: int = 1):
         xyz = features[0, :, :3].astype(np.float64) * R + self.origin
         along = xyz[:, 0] - 0.1                               # rod centers at x = 0.1
         peak = np.minimum(np.abs(along - 0.06), np.abs(along + 0.06))

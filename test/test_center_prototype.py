@@ -34,7 +34,7 @@ class NoisyCenterOracle:
         self.card = ModelCard(name="oracle", k=8, part_radius=R, block_size=4096)
         self.origin = xyz.min(axis=0)
 
-    def run(self, features: np.ndarray, knn: np.ndarray):
+    def run(self, features: np.ndarray, knn: np.ndarray, global_stride: int = 1):
         xyz = features[0, :, :3].astype(np.float64) * R + self.origin
         part = (xyz[:, 0] > 0.2).astype(int)
         center_x = np.where(part == 1, 0.35, 0.05)

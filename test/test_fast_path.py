@@ -35,7 +35,8 @@ def test_rewrite_of_the_exported_network_keeps_its_outputs(tmp_path):
     dst = tmp_path / "fast.onnx"
     result = optimize_file(TINY, dst)
     # the global pool, then all four max-pools (3 EdgeConv, 1 global) ahead of bias + activation
-    assert result == {"fused": 1, "generic": 0, "moved": 4, "max_abs_diff": result["max_abs_diff"]}
+    assert result == {"fused": 1, "generic": 0, "moved": 4, "strided": 1,
+                      "max_abs_diff": result["max_abs_diff"]}
     rewritten = onnx.load(str(dst))
     ops = _ops(rewritten)
     assert ops.count("GlobalMaxPool") == 1
@@ -58,7 +59,41 @@ def test_rewrite_of_the_exported_network_keeps_its_outputs(tmp_path):
             assert not feeds_pool, n.name
     # the runtime loads it (its load-time checks included) and reports the rewrite
     (tmp_path / "fast.json").write_text(card_path_for(TINY).read_text())
-    assert FpccModel(dst).graph_notes == "global-max-pool,max-first"
+    model = FpccModel(dst)
+    assert model.graph_notes == "global-max-pool,max-first,global-stride"
+    assert model.supports_global_stride and not FpccModel(TINY).supports_global_stride
+    # rewriting again changes nothing
+    again = optimize_file(dst, tmp_path / "again.onnx")
+    assert (again["fused"], again["moved"], again["strided"]) == (0, 0, 0)
+
+
+def test_global_stride_takes_the_global_max_over_every_sth_point(tmp_path):
+    """A block whose points all come twice in a row: the max over every 2nd row sees each
+    point once, so stride 2 gives what stride 1 gives; on a plain block stride 3 changes the
+    outputs (the input is used), and a model without the input refuses a stride."""
+    from fpcc_ros.graph_rewrite import optimize_file, sample_blocks
+    from fpcc_ros.model_card import card_path_for, load_card
+    from fpcc_ros.onnx_model import FpccModel
+
+    dst = tmp_path / "fast.onnx"
+    optimize_file(TINY, dst)
+    (tmp_path / "fast.json").write_text(card_path_for(TINY).read_text())
+    model, plain = FpccModel(dst), FpccModel(TINY)
+    card = load_card(card_path_for(TINY))
+    feed = sample_blocks(card.k, card.part_radius, sizes=(300,), batch=1, seed=3)[0]
+    feats, knn = feed["features"], feed["knn"]
+    twice = np.repeat(feats, 2, axis=1)              # rows 2i and 2i+1: point i
+    twice_knn = np.repeat(2 * knn, 2, axis=1)         # their neighbours: the copies 2j
+    every = model.run(twice, twice_knn)
+    second = model.run(twice, twice_knn, global_stride=2)
+    for x, y in zip(every, second):
+        np.testing.assert_allclose(y, x, rtol=0, atol=1e-5)
+    # the copies reproduce the block itself (the doubling is neutral), so the test has teeth
+    np.testing.assert_allclose(every[0][:, ::2], plain.run(feats, knn)[0], rtol=0, atol=1e-5)
+    strided = model.run(feats, knn, global_stride=3)
+    assert np.abs(strided[0] - model.run(feats, knn)[0]).max() > 1e-4
+    with pytest.raises(ValueError, match="optimize_onnx"):
+        plain.run(feats, knn, global_stride=2)
 
 
 def _toy_model(keepdims: int, leaky_is_output: bool) -> bytes:
@@ -533,13 +568,18 @@ def test_network_output_does_not_depend_on_neighbour_order():
         np.testing.assert_array_equal(x, y)
 
 
-def test_the_shipped_model_carries_every_exact_rewrite():
+def test_the_shipped_model_carries_every_rewrite():
     """A re-exported default must go through optimize_file again: without the rewrites the
-    node is a third (global max-pool) plus 12-17% (max-first) slower for the same outputs."""
-    from fpcc_ros.graph_rewrite import METADATA_VALUE, move_max_before_monotone, rewrite_global_max
+    node is a third (global max-pool) plus 12-17% (max-first) slower for the same outputs, and
+    its card's global_stride could not be applied."""
+    from fpcc_ros.graph_rewrite import (METADATA_VALUE, STRIDE_NOTE, add_global_stride,
+                                        move_max_before_monotone, rewrite_global_max)
     from fpcc_ros.onnx_model import FpccModel, default_model_path
 
-    assert FpccModel(default_model_path()).graph_notes == METADATA_VALUE
+    model = FpccModel(default_model_path())
+    assert model.graph_notes == f"{METADATA_VALUE},{STRIDE_NOTE}"
+    assert model.supports_global_stride and model.card.global_stride > 1
     shipped = onnx.load(str(default_model_path()))
     assert rewrite_global_max(shipped)[1:] == (0, 0)          # nothing left to rewrite
     assert move_max_before_monotone(shipped)[1] == 0
+    assert add_global_stride(shipped)[1] == 0

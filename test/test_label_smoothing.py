@@ -27,7 +27,7 @@ class StrayPointOracle:
     def __init__(self):
         self.card = ModelCard(name="oracle", k=8, part_radius=0.1, block_size=4096)
 
-    def run(self, features: np.ndarray, knn: np.ndarray):
+    def run(self, features: np.ndarray, knn: np.ndarray, global_stride: int = 1):
         xyz = features[0, :, :3].astype(np.float64) * 0.1
         dist = np.linalg.norm(xyz[:, :2] - xyz[:, :2].mean(axis=0), axis=1)
         score = np.clip(1 - (dist / 0.1) ** 2, 0, 1)

@@ -417,3 +417,25 @@ def test_view_axis_is_a_checked_parameter_and_each_frames_view_is_noted(live):
     assert live.segment(cf.make_cloud(world.astype(np.float32), "xyz32",
                                       frame_id="world")) is not None
     assert node._view_axes["world"] == "+z"
+
+
+def test_global_stride_is_a_ranged_parameter_that_needs_a_model_taking_it(live, tmp_path):
+    """The tiny model's graph has no global_stride input: a stride is refused with the fix
+    named and the old value stays; the same net through scripts/optimize_onnx.py takes it at
+    run time (and its card's value is the start-up default)."""
+    from fpcc_ros.graph_rewrite import optimize_file
+    from fpcc_ros.model_card import MAX_GLOBAL_STRIDE
+
+    node = live.node
+    desc = node.describe_parameter("global_stride")
+    assert (desc.integer_range[0].from_value, desc.integer_range[0].to_value) == \
+        (1, MAX_GLOBAL_STRIDE)
+    assert node.get_parameter("global_stride").value == 1
+    result = _set(node, global_stride=2)
+    assert not result.successful and "optimize_onnx" in result.reason
+    assert node.get_parameter("global_stride").value == 1
+    fast = _model(tmp_path, "fast", None, global_stride=3)
+    optimize_file(TINY, fast)
+    assert _set(node, model=str(fast), global_stride=3).successful
+    assert node._pipeline.config.global_stride == 3
+    assert live.segment(scene(4)) is not None

@@ -52,7 +52,9 @@ def test_roi_corners_must_be_ordered():
 
 
 @pytest.mark.parametrize("key, value", [("part_radius", -0.1), ("score_threshold", 1.5),
-                                        ("voxel_size", -0.5), ("min_points", -1)])
+                                        ("voxel_size", -0.5), ("min_points", -1),
+                                        ("global_stride", 0), ("global_stride", 17),
+                                        ("global_stride", 2.0), ("global_stride", True)])
 def test_out_of_range_settings_are_refused_and_named(key, value):
     with pytest.raises(ConfigError, match=key):
         PipelineConfig(part_radius=0.05).replace(**{key: value})
@@ -99,9 +101,9 @@ def test_a_frame_runs_with_blas_on_the_calling_thread_and_restores_it(model):
     seen: list[list[int]] = []
     run = pipe.model.run
 
-    def spy(*args):
+    def spy(*args, **kwargs):
         seen.append(blas_threads())
-        return run(*args)
+        return run(*args, **kwargs)
 
     with blas.limit(limits=2):
         pipe.model.run = spy
@@ -113,3 +115,24 @@ def test_a_frame_runs_with_blas_on_the_calling_thread_and_restores_it(model):
         assert blas_threads() == [2] * len(seen[0])
     # the same labels as the steps run without the pin
     np.testing.assert_array_equal(labels, pipe._segment(_scene()).labels)
+
+
+def test_a_global_stride_needs_a_model_that_takes_it(model, tmp_path):
+    """The tiny model's graph has no global_stride input: a stride other than 1 is refused at
+    set-up with the fix named; the same net through scripts/optimize_onnx.py segments with it,
+    and at stride 1 exactly as the plain graph does."""
+    from fpcc_ros.graph_rewrite import optimize_file
+
+    config = PipelineConfig.from_card(model.card, part_radius=0.05, min_points=1)
+    with pytest.raises(ConfigError, match="global_stride=2 .*optimize_onnx"):
+        Pipeline(model, config.replace(global_stride=2))
+    optimize_file(TEST_DATA / "tiny_fpcc.onnx", tmp_path / "fast.onnx")
+    (tmp_path / "fast.json").write_text((TEST_DATA / "tiny_fpcc.json").read_text())
+    fast = FpccModel(tmp_path / "fast.onnx", threads=1)
+    xyz = _scene(3)
+    plain = Pipeline(model, config).segment(xyz)
+    exact = Pipeline(fast, config).segment(xyz)
+    np.testing.assert_array_equal(exact.labels, plain.labels)
+    strided = Pipeline(fast, config.replace(global_stride=4)).segment(xyz)
+    assert strided.labels.shape == plain.labels.shape
+    assert not np.array_equal(strided.center_score, plain.center_score)   # the stride is fed

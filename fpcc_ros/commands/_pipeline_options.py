@@ -26,6 +26,9 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                        "stands for it (0 = the center point's own)")
     group.add_argument("--label-smoothing", type=int, default=None,
                        help="passes of kNN majority vote after clustering (0 = off; default 1)")
+    group.add_argument("--global-stride", type=int, default=None,
+                       help="the network's global feature over every s-th point of a block "
+                       "(1 = every point, exact; default: the model card's)")
     group.add_argument("--view-axis", default=None, choices=VIEW_AXES,
                        help="the direction the camera looks along in the cloud's frame: +z for a "
                        "camera optical frame (synth scenes), -z for a z-up world/base frame "
@@ -53,7 +56,7 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
-             "roi_max", "view_axis")
+             "roi_max", "view_axis", "global_stride")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

@@ -256,7 +256,10 @@ class TorchBlockModel:
                               embedding_dim=net.config.embedding_dim)
 
     @torch.no_grad()
-    def run(self, features: np.ndarray, knn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def run(self, features: np.ndarray, knn: np.ndarray,
+            global_stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        if global_stride != 1:   # validation runs the network as trained: every point
+            raise ValueError(f"global_stride={global_stride}: the torch network pools every point")
         self.net.eval()
         emb, score = self.net(torch.from_numpy(features), torch.from_numpy(knn))
         return emb.numpy(), score.numpy()
