@@ -47,6 +47,8 @@ class NodeProcess:
         self.env = env or isolated_ros_env()
         repo = str(Path(__file__).resolve().parent.parent)
         self.env["PYTHONPATH"] = os.pathsep.join(filter(None, [repo, self.env.get("PYTHONPATH")]))
+        # a crash in C code (rclpy, DDS, onnxruntime) leaves the Python stacks in the log
+        self.env.setdefault("PYTHONFAULTHANDLER", "1")
         self.log_path = log_path
         self.proc: subprocess.Popen | None = None
 
