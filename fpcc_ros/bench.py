@@ -786,7 +786,7 @@ def _pair(median: float, p90: float) -> str:
 def _stride_label(config: dict[str, Any]) -> str:
     """The global feature's stride when it is not every point (an approximation: README)."""
     stride = config.get("global_stride", 1)
-    return f", global feature over every {stride}th point" if stride != 1 else ""
+    return f", global feature over 1 in {stride} points" if stride != 1 else ""
 
 
 def _stat(quantiles: dict[str, float]) -> str:

@@ -33,8 +33,11 @@ block instead of all of them, a stride the graph takes as an optional input ``gl
 (an overridable initializer, default 1: the graph above, bit for bit). A max over a quarter of
 a block's 2-4k points barely moves it; the 1024-wide GEMM before it, a fifth of the network,
 shrinks with the points it sees (see the model card's ``global_stride`` and the README). Such a
-model records ``global-stride`` in ``fpcc_graph`` as well. Needs the ``onnx`` package (training/export dependency), never at runtime:
-``scripts/optimize_onnx.py`` applies it to a file and checks the result against the original.
+model records ``global-stride`` in ``fpcc_graph`` as well.
+
+Needs the ``onnx`` package (training/export dependency), never at runtime:
+``scripts/optimize_onnx.py`` applies the rewrites to a file and checks the result against the
+original.
 """
 from __future__ import annotations
 

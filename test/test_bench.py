@@ -344,7 +344,7 @@ def test_a_global_stride_is_named_in_the_report(tiny_scene, tiny_pipeline, monke
     """An approximate network is never reported as the plain one: the stride in use is on the
     model line of the summary and on the markdown's machine line."""
     report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
-    assert "every 4th point" not in report.summary() + report.markdown()
+    assert "1 in 4 points" not in report.summary() + report.markdown()
     report.config["global_stride"] = 4
-    assert "global feature over every 4th point" in report.summary()
-    assert "global feature over every 4th point" in report.markdown()
+    assert "global feature over 1 in 4 points" in report.summary()
+    assert "global feature over 1 in 4 points" in report.markdown()
