@@ -686,10 +686,11 @@ class BenchReport:
     def summary(self) -> str:
         lines = []
         m = self.machine
+        reference, host = probe_reference(m)
         lines.append(f"machine: {_cpu_label(m)}, {m.get('cpus')} CPUs visible, onnxruntime "
                      f"{m.get('onnxruntime')} {m.get('providers')}, threads {m.get('threads')}"
-                     + (f", speed probe {m['speed_probe_ms']:.1f} ms ({probe_reference(m)[1]}: "
-                        f"~{probe_reference(m)[0]:g})" if m.get("speed_probe_ms") else "")
+                     + (f", speed probe {m['speed_probe_ms']:.1f} ms ({host}: ~{reference:g})"
+                        if m.get("speed_probe_ms") else "")
                      + (f", malloc {m['heap']}" if m.get("heap") else ""))
         lines.append(f"model: {self.model.get('path')} ({self.model.get('name')})"
                      + _stride_label(self.config)

@@ -183,7 +183,7 @@ def add_global_stride(model: Any) -> tuple[Any, int]:
         if pool.op_type != "GlobalMaxPool":
             continue
         node = producer.get(pool.input[0])
-        while node is not None and node.op_type in ("Add", "Relu", "LeakyRelu", "MatMul"):
+        while node is not None and node.op_type in ("Add", "MatMul", *_MONOTONE_UNARY):
             varying = [t for t in node.input if t not in consts]
             node = producer.get(varying[0]) if len(varying) == 1 else None
         if node is not None and node.op_type == "Transpose" and \
