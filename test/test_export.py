@@ -82,6 +82,9 @@ def test_cli_train_resume_export(scenes, tmp_path):
         assert float(r["loss"]) == pytest.approx(
             float(r["loss_ef"]) + TrainConfig().alpha * float(r["loss_cs"]), rel=1e-6)
         assert r["val_loss"] and r["val_precision"] and r["val_recall"] and r["val_center_mae"]
+        # health columns: a fresh tiny net has every channel alive; gradients flowed
+        assert int(r["live_glob"]) == TINY.global_dim and int(r["live_edge1a"]) == TINY.edge_dim
+        assert float(r["grad_norm"]) > 0
     state = torch.load(run / "checkpoint_last.pt", weights_only=True)   # plain types only
     assert state["epoch"] == 2 and state["step"] == 0
 

@@ -30,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true",
                         help="continue RUN_DIR/checkpoint_last.pt (same data, same batches)")
     parser.add_argument("--lr", type=float, default=1e-3)
-    parser.add_argument("--weight-decay", type=float, default=1e-4)
+    parser.add_argument("--weight-decay", type=float, default=1e-4,
+                        help="decoupled (AdamW) decay of the weight matrices; norm scales and "
+                        "biases never decay (default: %(default)g)")
     parser.add_argument("--batch", type=int, default=4)
     inherited = " (default: the --init model's, else the shipped model's {})"
     parser.add_argument("--block-size", type=int, default=None,

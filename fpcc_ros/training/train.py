@@ -1,4 +1,4 @@
-"""Train FPCC-Net on scene NPZ files: Adam, cosine learning rate, checkpoints, validation.
+"""Train FPCC-Net on scene NPZ files: AdamW, cosine learning rate, checkpoints, validation.
 
 A run directory holds ``checkpoint_last.pt`` (written every epoch and when ``time_limit_min``
 stops the run mid-epoch), ``checkpoint_best.pt``, ``history.csv`` and ``history.png``.
@@ -27,6 +27,8 @@ import torch
 from fpcc_ros.onnx_model import default_model_path
 from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
     load_scene, scene_blocks
+from fpcc_ros.training.health import WARN_DEAD_SHARE, channel_health, dead_layers, \
+    gradient_norm, health_line, make_optimizer
 from fpcc_ros.training.loss import EPS1, EPS2, batch_loss, distill_loss
 from fpcc_ros.training.model import FPCCNet, NetConfig
 
@@ -34,7 +36,8 @@ CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
 HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss",
                   "val_loss_ef", "val_loss_cs", "val_center_mae", "val_precision", "val_recall",
-                  "val_mucov", "val_precision_paper", "val_recall_paper", "seconds")
+                  "val_mucov", "val_precision_paper", "val_recall_paper", "grad_norm", "seconds")
+LIVE_PREFIX = "live_"   # history columns live_<layer>: live channels of that layer (health.py)
 
 
 # Weight of the center-score loss in training. The paper's alpha = 3 goes with its L_EF, a plain
@@ -51,7 +54,7 @@ class TrainConfig:
     epochs: int = 30
     lr: float = 1e-3
     min_lr_fraction: float = 0.01
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-4  # decoupled (AdamW), weight matrices only: see health.make_optimizer
     batch: int = 4
     alpha: float = TRAIN_ALPHA
     eps1: float = EPS1
@@ -315,16 +318,20 @@ def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
 
 # ----------------------------------------------------------------------------- history
 
-def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:
-    """history.csv and history.png (losses and validation metrics per epoch)."""
+def write_history(run_dir: Path, history: list[dict[str, Any]],
+                  widths: dict[str, int] | None = None) -> None:
+    """history.csv and history.png (losses, validation metrics and live channels per epoch;
+    ``widths``: channels per layer, for the live share)."""
+    live = sorted({k for h in history for k in h if k.startswith(LIVE_PREFIX)},
+                  key=lambda k: next(i for i, h in enumerate(history) if k in h))
     with open(run_dir / "history.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=HISTORY_FIELDS, extrasaction="ignore")
+        writer = csv.DictWriter(fh, fieldnames=HISTORY_FIELDS + tuple(live), extrasaction="ignore")
         writer.writeheader()
         writer.writerows(history)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(15, 4))
     epochs = [h["epoch"] for h in history]
     for key in ("loss", "loss_ef", "loss_cs", "val_loss"):
         if any(key in h for h in history):
@@ -334,7 +341,14 @@ def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:
         if any(key in h for h in history):
             ax2.plot(epochs, [h.get(key, np.nan) for h in history], marker=".", label=key)
     ax2.set_xlabel("epoch"), ax2.set_ylim(0, 1)
-    for ax in (ax1, ax2):
+    # live share per layer: a collapsing network shows here long before its metrics stall
+    widths = widths or {}
+    for key in live:
+        name = key[len(LIVE_PREFIX):]
+        total = widths.get(name) or max(h.get(key, 0) for h in history) or 1
+        ax3.plot(epochs, [h.get(key, np.nan) / total for h in history], marker=".", label=name)
+    ax3.set_xlabel("epoch"), ax3.set_ylabel("live channels (share of the layer)"), ax3.set_ylim(0, 1.05)
+    for ax in (ax1, ax2, ax3):
         if ax.get_lines():
             ax.legend()
     fig.tight_layout()
@@ -403,7 +417,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     if init_state is not None:
         model.load_state_dict(init_state["model"])
     teacher = load_teacher(config.teacher, config.net, config.data) if config.teacher else None
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    optimizer = make_optimizer(model, config.lr, config.weight_decay)
 
     if not data:
         raise ValueError("no training data: pass --data with folders of scene NPZ files")
@@ -470,6 +484,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
                 loss = loss + config.distill * terms["loss_kd"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            sums["grad_norm"] += gradient_norm(model)
             optimizer.step()
             for key, value in {"loss": loss, **terms}.items():
                 sums[key] += value.item()
@@ -482,6 +497,9 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
             break
         steps = max(sums["steps"], 1)
         row = {"epoch": epoch + 1, "lr": lr, **{k: v / steps for k, v in sums.items() if k != "steps"}}
+        health = channel_health(model)
+        row.update({LIVE_PREFIX + name: live for name, (live, _) in health.items()})
+        _warn_if_dying(health, epoch + 1)
         validating = bool(val_scenes) and _validate_after(config, epoch + 1, out_of_time())
         if validating:
             try:
@@ -491,7 +509,7 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
                       "saving the checkpoint without validation metrics", file=sys.stderr)
         row["seconds"] = _now() - epoch_start
         history.append(_plain(row))
-        write_history(run_dir, history)
+        write_history(run_dir, history, {name: total for name, (_, total) in health.items()})
         epoch, skip = epoch + 1, 0
         sums = _zero_sums(teacher is not None)
         # the best checkpoint is ranked among validated epochs when there is validation
@@ -514,8 +532,20 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
 
 def _zero_sums(distilling: bool) -> dict[str, float]:
     """The running sums of an epoch's loss terms."""
-    keys = ("loss", "loss_ef", "loss_cs") + (("loss_kd",) if distilling else ())
+    keys = ("loss", "loss_ef", "loss_cs", "grad_norm") + (("loss_kd",) if distilling else ())
     return {**dict.fromkeys(keys, 0.0), "steps": 0}
+
+
+def _warn_if_dying(health: dict[str, tuple[int, int]], epoch: int) -> None:
+    """A loud warning when a layer has lost more than WARN_DEAD_SHARE of its channels: they do
+    not come back (no gradient reaches a channel whose scale is ~0), so stop and fix the run."""
+    dying = dead_layers(health, WARN_DEAD_SHARE)
+    if dying:
+        worst = ", ".join(f"{name} {share:.0%} dead" for name, share in dying.items())
+        print(f"\nWARNING fpcc train: after epoch {epoch} {worst} (more than "
+              f"{WARN_DEAD_SHARE:.0%} of the layer's channels output a constant; dead channels "
+              "never recover). Check --weight-decay, --lr and --precision before training on; "
+              f"live channels: {health_line(health)}\n", file=sys.stderr)
 
 
 def load_teacher(teacher: str | Path, net: NetConfig, data: DataConfig) -> FPCCNet:
