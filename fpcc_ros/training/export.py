@@ -18,6 +18,8 @@ import torch
 
 from fpcc_ros.features import block_features, knn_graph
 from fpcc_ros.model_card import ModelCard, card_path_for
+from fpcc_ros.weight_flush import FLUSH_BELOW, TINY as TINY_FLOAT
+from fpcc_ros.training.health import EXPORT_DEAD_SHARE, channel_health, dead_layers, health_line
 from fpcc_ros.training.model import TINY, FPCCNet, NetConfig, fold_batchnorm
 
 OPSET = 17
@@ -25,7 +27,8 @@ WEIGHTS_FORMAT = "fpcc_ros/weights/1"
 
 
 def export_onnx(model: FPCCNet, path: str | Path, k: int) -> Path:
-    """Write ``model`` (eval mode, norms folded) as ONNX with dynamic batch and point axes."""
+    """Write ``model`` (eval mode, norms folded) as ONNX with dynamic batch and point axes;
+    float weights under 1e-20 are written as 0 (graph_rewrite.optimize_file)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     folded = fold_batchnorm(model)
@@ -58,6 +61,16 @@ def export_onnx(model: FPCCNet, path: str | Path, k: int) -> Path:
     return path
 
 
+@torch.no_grad()
+def tiny_weights(model: FPCCNet) -> dict[str, int]:
+    """Folded float weights the export writes as 0: under 1e-20, and of those the denormal ones
+    (the remains of collapsed channels; see fpcc_ros.weight_flush)."""
+    values = torch.cat([p.flatten() for p in fold_batchnorm(model).parameters()]).abs()
+    nonzero = values != 0
+    return {"tiny_weights_flushed": int((nonzero & (values < FLUSH_BELOW)).sum()),
+            "denormal_weights_flushed": int((nonzero & (values < TINY_FLOAT)).sum())}
+
+
 def check_onnx(model: FPCCNet, path: str | Path, k: int, batch: int = 2, points: int = 300,
                seed: int = 1) -> float:
     """Max |onnxruntime - torch| over both outputs on a random block of real geometry."""
@@ -77,8 +90,12 @@ def check_onnx(model: FPCCNet, path: str | Path, k: int, batch: int = 2, points:
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: float | None = None,
                       name: str | None = None, block_size: int | None = None,
-                      save_torch: bool = True, check: bool = True, tolerance: float = 1e-4) -> ModelCard:
-    """Export a training checkpoint to ``out`` (.onnx) with its card (and ``.pt`` weights)."""
+                      save_torch: bool = True, check: bool = True, tolerance: float = 1e-4,
+                      force: bool = False) -> ModelCard:
+    """Export a training checkpoint to ``out`` (.onnx) with its card (and ``.pt`` weights).
+
+    A network with a layer more than 25 % dead (health.EXPORT_DEAD_SHARE) is refused unless
+    ``force``: such a model answers, slowly and badly, and users cannot tell why."""
     from fpcc_ros.training.train import TrainConfig, load_checkpoint, model_from_checkpoint
 
     state = load_checkpoint(checkpoint)
@@ -89,6 +106,14 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
         part_radius = trained_on.get("part_radius")
         if part_radius is None:
             raise ValueError(f"{checkpoint} does not record the training part radius; pass --part-radius")
+    health = channel_health(model)
+    dying = dead_layers(health, EXPORT_DEAD_SHARE)
+    if dying and not force:
+        worst = ", ".join(f"{name} {share:.0%}" for name, share in dying.items())
+        raise ValueError(f"{checkpoint}: dead channels in {worst} (more than "
+                         f"{EXPORT_DEAD_SHARE:.0%} of a layer outputs a constant; live: "
+                         f"{health_line(health)}); retrain from scratch with this release's "
+                         "optimizer, or pass --force to export it anyway")
     out = Path(out)
     export_onnx(model, out, config.data.k)
     if check:
@@ -111,7 +136,9 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
         training={"command": " ".join(state.get("command", [])), "epochs": len(history),
                   "steps_after_last_epoch": int(state.get("step", 0)),
                   "wall_time_s": round(float(state.get("wall_time_s", 0.0)), 1),
-                  "config": config.to_dict(), "checkpoint": str(checkpoint)},
+                  "config": config.to_dict(), "checkpoint": str(checkpoint),
+                  "health": {"live_channels": {n: list(v) for n, v in health.items()},
+                             **tiny_weights(model)}},
         metrics={k: v for k, v in last.items() if k.startswith("val_") or k.startswith("loss")},
     )
     card.save(card_path_for(out))
