@@ -47,6 +47,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fpcc_ros.onnx_model import STRIDE_INPUT
+from fpcc_ros.weight_flush import flush_tiny_weights
 
 METADATA_KEY = "fpcc_graph"
 METADATA_VALUE = "global-max-pool,max-first"
@@ -408,7 +409,8 @@ def _drop_unused_initializers(graph: Any) -> None:
 def optimize_file(src: Path | str, dst: Path | str, check: bool = True,
                   tolerance: float = 1e-4) -> dict[str, Any]:
     """Rewrite ``src`` into ``dst`` (may be the same path): the global max-pool on a transposed
-    GEMM, then every max-pool ahead of its monotone tail (``moved``). With ``check``, run both on sample
+    GEMM, then every max-pool ahead of its monotone tail (``moved``); float weights under 1e-20
+    set to 0 (``flushed``, of which ``denormal``: see fpcc_ros.weight_flush). With ``check``, run both on sample
     blocks and refuse (ValueError, nothing written) if any output differs by more than
     ``tolerance``. Returns what was done and the largest difference seen."""
     import onnx
@@ -419,9 +421,9 @@ def optimize_file(src: Path | str, dst: Path | str, check: bool = True,
     model, moved = move_max_before_monotone(model)
     model, sliced = add_global_stride(model)
     onnx.checker.check_model(model)
-    data = model.SerializeToString()
+    data, flush = flush_tiny_weights(model.SerializeToString())
     worst = 0.0
-    if check and (fused or generic or moved or sliced):
+    if check and (fused or generic or moved or sliced or flush.flushed):
         worst = compare_models(src.read_bytes(), data, card_path=src.with_suffix(".json"))
         if not worst <= tolerance:
             raise ValueError(f"{src}: the rewritten graph differs from the original by {worst:.2e} "
@@ -430,7 +432,7 @@ def optimize_file(src: Path | str, dst: Path | str, check: bool = True,
     tmp.write_bytes(data)
     tmp.replace(dst)
     return {"fused": fused, "generic": generic, "moved": moved, "strided": sliced,
-            "max_abs_diff": worst}
+            "flushed": flush.flushed, "denormal": flush.denormal, "max_abs_diff": worst}
 
 
 def sample_blocks(k: int, part_radius: float, sizes=(300, 2500), batch: int = 2,

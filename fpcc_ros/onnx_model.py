@@ -5,12 +5,16 @@ Everything that can be wrong with a model file is found here, at load time, and 
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
 from fpcc_ros.model_card import ModelCard, ModelCardError, card_path_for, load_card
+from fpcc_ros.weight_flush import WeightFlush, flush_tiny_weights
+
+_log = logging.getLogger("fpcc_ros")
 
 INPUTS = ("features", "knn")
 OUTPUTS = ("embedding", "center_score")
@@ -52,7 +56,20 @@ class FpccModel:
             self.card: ModelCard = load_card(card_path_for(self.path))
         except ModelCardError as exc:
             raise ModelLoadError(str(exc)) from exc
-        self.session = self._open_session(providers or ["CPUExecutionProvider"], threads)
+        # users bring models exported elsewhere: tiny weights (denormal floats and those whose
+        # products are) cost Intel cores ~30x per product; zero them before the session sees them
+        try:
+            model_bytes, self.flush = flush_tiny_weights(self.path.read_bytes())
+        except (OSError, ValueError) as exc:
+            raise ModelLoadError(f"model file {self.path} is not a readable ONNX model ({exc}); "
+                                 "re-export it with `fpcc export`") from exc
+        if self.flush.flushed:
+            _log.warning("%s: %d of %d float weights were tiny (|w| < 1e-20; %d denormal) and are "
+                         "set to 0 in memory (they slow Intel CPUs, not the outputs); "
+                         "`scripts/optimize_onnx.py %s` fixes the file", self.path,
+                         self.flush.flushed, self.flush.weights, self.flush.denormal, self.path)
+        self.session = self._open_session(model_bytes, providers or ["CPUExecutionProvider"],
+                                          threads)
         # exact graph rewrites applied by scripts/optimize_onnx.py (fpcc_ros.graph_rewrite)
         self.graph_notes: str = self.session.get_modelmeta().custom_metadata_map.get(
             "fpcc_graph", "")
@@ -67,7 +84,8 @@ class FpccModel:
     def active_providers(self) -> list[str]:
         return self.session.get_providers()
 
-    def _open_session(self, providers: list[str], threads: int) -> ort.InferenceSession:
+    def _open_session(self, model_bytes: bytes, providers: list[str],
+                      threads: int) -> ort.InferenceSession:
         available = ort.get_available_providers()
         missing = [p for p in providers if p not in available]
         if missing:
@@ -82,8 +100,10 @@ class FpccModel:
         # left spinning they hold a core for ~25 ms after every run, which the kNN queries and
         # the node's DDS threads need on a 2-core machine.
         options.add_session_config_entry("session.force_spinning_stop", "1")
+        # denormal intermediate results (not only weights) flushed to zero by the CPU
+        options.add_session_config_entry("session.set_denormal_as_zero", "1")
         try:
-            return ort.InferenceSession(str(self.path), sess_options=options, providers=providers)
+            return ort.InferenceSession(model_bytes, sess_options=options, providers=providers)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types
             raise ModelLoadError(f"model file {self.path} is not a loadable ONNX model ({exc}); "
                                  "re-export it with `fpcc export`") from exc

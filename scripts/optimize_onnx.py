@@ -43,7 +43,8 @@ def main() -> int:
         shutil.copyfile(card, out.with_suffix(".json"))
     print(f"{out}: {result['fused']} global max-pool(s) on a transposed GEMM, "
           f"{result['generic']} other(s); {result['moved']} max-pool(s) moved ahead of their "
-          f"bias and activation; {result['strided']} given the global_stride input; largest "
+          f"bias and activation; {result['strided']} given the global_stride input; "
+          f"{result['flushed']} tiny weight(s) set to 0 ({result['denormal']} denormal); largest "
           f"output difference {result['max_abs_diff']:.1e}")
     return 0
 
