@@ -13,6 +13,8 @@ $(STAMP): requirements/runtime.txt requirements/train.txt requirements/test.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements/runtime.txt -r requirements/train.txt -r requirements/test.txt
+	# the package itself, editable and without downloads: .venv/bin/fpcc and .venv/bin/segmenter
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
 ## Start the node, replay the demo bag into it over DDS, record outputs, print a summary, write a PNG.
