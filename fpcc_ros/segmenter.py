@@ -44,6 +44,8 @@ from msg_tools.point_cloud2 import CloudFormatError
 
 from fpcc_ros.frame import process_cloud
 from fpcc_ros.model_card import MAX_GLOBAL_STRIDE
+from fpcc_ros.node_diagnostics import (THRESHOLD_PARAMS, HealthReporter, ModelInfo, Reading,
+                                       Thresholds)
 from fpcc_ros.onnx_model import FpccModel, ModelLoadError, default_model_path
 from fpcc_ros.pipeline import AUTO_VOXEL, ConfigError, Pipeline, PipelineConfig
 
@@ -139,6 +141,8 @@ PARAMS = (
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
            "Skip frames whose header stamp is older than this many seconds (0 = off).",
            0.0, 3600.0),
+    *(_Param(t.name, ParameterType.PARAMETER_DOUBLE, t.description, t.low, t.high)
+      for t in THRESHOLD_PARAMS),
 )
 
 
@@ -169,37 +173,54 @@ class _WarnThrottle:
 
 
 class SegmenterNode(Node):
+    """Loads the model and starts taking frames at construction (the managed variant,
+    fpcc_ros.managed_segmenter, does the same steps on lifecycle transitions)."""
+
     def __init__(self, **kwargs: Any):
         super().__init__(NODE_NAME, **kwargs)
-        self._throttle = _WarnThrottle(self.get_logger())
-        self._declare_parameters()
+        self._setup()
         self._pipeline = self._build_pipeline(self._param_values())
         self._log_model(self._pipeline)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._create_outputs(self.create_publisher)
+        self._create_input()
+        self._start_worker()
 
+    def _setup(self) -> None:
+        """Parameters, the frame slot, counters, the periodic log and /diagnostics: what the
+        node has before (and without) a model."""
+        self._throttle = _WarnThrottle(self.get_logger())
+        self._declare_parameters()
+        self._pipeline: Pipeline | None = None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self._slot_lock = threading.Condition()
         self._newest: tuple[PointCloud2, float] | None = None
-        self._running = True
+        self._running = False
+        self._worker: threading.Thread | None = None
+        self._sub = None
         self.stats = _Stats()
         self._view_axes: dict[str, str] = {}   # frame_id -> the last view axis logged
+        self._report_timer = self.create_timer(10.0, self._report)
+        self._health = HealthReporter(self, self._diagnostic_reading)
 
-        self._pub_cloud = self.create_publisher(
-            PointCloud2, "segmented_points", OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_instances = self.create_publisher(
-            PoseArray, "instances", OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
-        self._pub_markers = self.create_publisher(
-            MarkerArray, "instance_markers", OUTPUT_QOS,
-            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+    def _create_outputs(self, create_publisher: Any) -> None:
+        """``create_publisher``: the node's own, or a lifecycle node's create_lifecycle_publisher."""
+        self._pub_cloud, self._pub_instances, self._pub_markers = (
+            create_publisher(msg_type, topic, OUTPUT_QOS,
+                             qos_overriding_options=QoSOverridingOptions.with_default_policies())
+            for msg_type, topic in ((PointCloud2, "segmented_points"), (PoseArray, "instances"),
+                                    (MarkerArray, "instance_markers")))
+
+    def _create_input(self) -> None:
         self._sub = self.create_subscription(
             PointCloud2, "points", self._on_cloud, INPUT_QOS,
             qos_overriding_options=QoSOverridingOptions.with_default_policies(),
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible_qos))
+        self.get_logger().info(f"listening on {self._sub.topic_name}")
+
+    def _start_worker(self) -> None:
+        self._running = True
         self._worker = threading.Thread(target=self._work, name="fpcc_worker", daemon=True)
         self._worker.start()
-        self._report_timer = self.create_timer(10.0, self._report)
-        self.get_logger().info(f"listening on {self._sub.topic_name}")
 
     # ---- parameters -------------------------------------------------------------------------
     def _declare_parameters(self) -> None:
@@ -227,6 +248,7 @@ class SegmenterNode(Node):
             "view_axis": PipelineConfig.view_axis,
             "global_stride": card.global_stride if card else 1,
             "threads": 0, "max_input_age": 0.0,
+            **{t.name: t.default for t in THRESHOLD_PARAMS},
         }
         for p in PARAMS:
             if p.name == "model":
@@ -254,9 +276,11 @@ class SegmenterNode(Node):
         return Pipeline(model, config)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        current = self._pipeline
+        if current is None:   # no model yet: the values are checked when it loads (configure)
+            return SetParametersResult(successful=True)
         values = self._param_values()
         values.update({p.name: p.value for p in params})
-        current = self._pipeline
         try:
             if any(p.name in MODEL_PARAMS for p in params):
                 candidate = self._build_pipeline(values)
@@ -310,9 +334,7 @@ class SegmenterNode(Node):
                     with self._slot_lock:
                         self._drop_pending()
                     return
-                self.stats.failed += 1
-                self._throttle.warn(f"err:{type(exc).__name__}",
-                                    f"frame failed ({type(exc).__name__}: {exc}); continuing")
+                self._frame_failed(exc)
 
     def _drop_pending(self) -> None:
         """At shutdown: count the frame still waiting in the slot (call with the lock held)."""
@@ -332,18 +354,23 @@ class SegmenterNode(Node):
             out = process_cloud(msg, pipeline, RCLPY)
         except CloudFormatError as exc:
             self.stats.invalid += 1
+            self.stats.last_invalid = str(exc)
             self._throttle.warn(f"bad:{exc.kind}", f"dropped a malformed PointCloud2: {exc}")
             return
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the node
-            self.stats.failed += 1
-            self._throttle.warn(f"err:{type(exc).__name__}",
-                                f"frame failed ({type(exc).__name__}: {exc}); continuing")
+            self._frame_failed(exc)
             return
         self._note_view_axis(msg.header.frame_id, out.result.view_axis, pipeline.config.view_axis)
         self._pub_cloud.publish(out.cloud)
         self._pub_instances.publish(out.instances)
         self._pub_markers.publish(out.markers)
         self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
+
+    def _frame_failed(self, exc: Exception) -> None:
+        self.stats.failed += 1
+        self.stats.last_failure = f"{type(exc).__name__}: {exc}"
+        self._throttle.warn(f"err:{type(exc).__name__}",
+                            f"frame failed ({self.stats.last_failure}); continuing")
 
     def _note_view_axis(self, frame_id: str, axis: str, setting: str) -> None:
         """Log the camera direction the network was shown, once per frame id and whenever it
@@ -368,6 +395,20 @@ class SegmenterNode(Node):
                 f"{s['published']} frames out, {s['dropped_stale']} stale dropped, "
                 f"{s['invalid']} invalid, {s['failed']} failed; latency median "
                 f"{s['latency_ms_median']:.0f} ms, last {s['last_instances']} instances")
+
+    def _diagnostic_reading(self, state: str = "active", state_error: str = "") -> Reading:
+        """For /diagnostics (fpcc_ros.node_diagnostics), on the executor thread: copies of
+        counters and references only, never a wait on the worker."""
+        pipeline, values = self._pipeline, self._param_values()
+        return Reading(
+            counters=self.stats.snapshot(), latencies_ms=self.stats.latencies_ms(),
+            last_instances=self.stats.last_instances,
+            input_topic=self.resolve_topic_name("points"),
+            thresholds=Thresholds.from_params(values),
+            model=ModelInfo.of(pipeline.model) if pipeline else None,
+            view_axes=dict(self._view_axes), view_axis_setting=values["view_axis"],
+            last_invalid=self.stats.last_invalid, last_failure=self.stats.last_failure,
+            state=state, state_error=state_error)
 
     def totals(self) -> str:
         """One line accounting for every frame received (none lost silently); logged at exit."""
@@ -394,12 +435,17 @@ class _Stats:
         self.dropped_at_shutdown = 0
         self.published = 0
         self.last_instances = 0
+        self.last_invalid = self.last_failure = ""   # what the last one was, for /diagnostics
         self._latency = deque(maxlen=200)
 
     def record(self, latency_s: float, instances: int) -> None:
         self.published += 1
         self.last_instances = instances
         self._latency.append(latency_s * 1e3)
+
+    def latencies_ms(self) -> list[float]:
+        """The last 200 receive-to-publish latencies, newest last."""
+        return list(self._latency)
 
     def snapshot(self) -> dict[str, Any]:
         lat = list(self._latency)
@@ -427,24 +473,29 @@ def main(args: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        finished = node.stop_worker()
-        totals = node.totals()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-        # After destroy_node: the node logger no longer tries to publish on the (already shut
-        # down) /rosout, it only prints.
-        logger = rclpy.logging.get_logger(NODE_NAME)
-        logger.info(totals)
-        if not finished:
-            # A frame is still inside onnxruntime/numpy. Letting the interpreter finalize under
-            # it aborts in C++ static destructors ("terminate called ..."); leave at once instead.
-            logger.warning("1 more frame was still being processed 5 s after shutdown was "
-                           "requested; exiting without it")
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(0)
+        teardown(node, executor)
     return 0
+
+
+def teardown(node: SegmenterNode, executor: SingleThreadedExecutor) -> None:
+    """Stop the worker, log the totals, destroy the node and shut rclpy down (both mains)."""
+    finished = node.stop_worker()
+    totals = node.totals()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    # After destroy_node: the node logger no longer tries to publish on the (already shut
+    # down) /rosout, it only prints.
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    logger.info(totals)
+    if not finished:
+        # A frame is still inside onnxruntime/numpy. Letting the interpreter finalize under
+        # it aborts in C++ static destructors ("terminate called ..."); leave at once instead.
+        logger.warning("1 more frame was still being processed 5 s after shutdown was "
+                       "requested; exiting without it")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
 
 
 if __name__ == "__main__":
