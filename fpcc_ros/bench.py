@@ -695,6 +695,8 @@ class BenchReport:
         lines.append(f"model: {self.model.get('path')} ({self.model.get('name')})"
                      + _stride_label(self.config)
                      + ("  UNTRAINED: accuracy meaningless" if self.model.get("untrained") else ""))
+        if self.model.get("health"):
+            lines.append(f"model health: {self.model['health']}")
         if self.postprocess:
             p = self.postprocess
             lines.append(f"NMS + clustering alone: {p['points']} points, {p['gt_instances']} GT "
@@ -856,20 +858,33 @@ def cpu_description(cpuinfo: str) -> tuple[str, list[str]]:
     return model, [f for f in VECTOR_FLAGS if f in flags]
 
 
+def cpu_vendor(cpuinfo: str) -> str:
+    """``GenuineIntel``, ``AuthenticAMD``, ... from /proc/cpuinfo's ``vendor_id`` ('' if none).
+    Named beside every timing: Intel cores pay ~30x per denormal product, AMD cores little, so
+    one model can be 7x slower on one vendor than on the other (issue 25)."""
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "vendor_id":
+            return value.strip()
+    return ""
+
+
 def _cpu_label(machine: dict[str, Any]) -> str:
-    """The CPU's name with its vector extensions, e.g. "AMD EPYC (avx2 fma)"."""
+    """The CPU's vendor, name and vector extensions, e.g. "AuthenticAMD AMD EPYC (avx2 fma)"."""
     vector = machine.get("cpu_vector")
-    return f"{machine.get('cpu')}" + (f" ({' '.join(vector) or 'no AVX2'})"
-                                      if vector is not None else "")
+    vendor = machine.get("cpu_vendor")
+    return (f"{vendor} " if vendor else "") + f"{machine.get('cpu')}" + (
+        f" ({' '.join(vector) or 'no AVX2'})" if vector is not None else "")
 
 
 def machine_info(pipeline: Any) -> dict[str, Any]:
     import onnxruntime as ort
 
-    cpu, vector = platform.processor() or "", None
+    cpu, vector, vendor = platform.processor() or "", None, ""
     try:
-        model, vector = cpu_description(Path("/proc/cpuinfo").read_text())
-        cpu = model or cpu
+        cpuinfo = Path("/proc/cpuinfo").read_text()
+        model, vector = cpu_description(cpuinfo)
+        cpu, vendor = model or cpu, cpu_vendor(cpuinfo)
     except OSError:
         pass
     try:
@@ -877,7 +892,7 @@ def machine_info(pipeline: Any) -> dict[str, Any]:
     except AttributeError:
         cpus = os.cpu_count()
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    return {"cpu": cpu, "cpu_vector": vector, "cpus": cpus,
+    return {"cpu": cpu, "cpu_vendor": vendor, "cpu_vector": vector, "cpus": cpus,
             "load_avg_1m_at_start": load[0] if load else None,
             "python": platform.python_version(), "numpy": np.__version__,
             "onnxruntime": ort.__version__, "providers": pipeline.model.active_providers,
@@ -898,7 +913,9 @@ def model_info(pipeline: Any) -> dict[str, Any]:
     card = pipeline.model.card
     return {"path": str(pipeline.model.path), "name": card.name, "k": card.k,
             "untrained": bool((card.training or {}).get("untrained", False)),
-            "graph": getattr(pipeline.model, "graph_notes", None)}
+            "graph": getattr(pipeline.model, "graph_notes", None),
+            "health": pipeline.model.health_line() if hasattr(pipeline.model, "health_line") else None,
+            "collapsed": bool(getattr(pipeline.model, "collapsed", False))}
 
 
 def config_info(config: Any) -> dict[str, Any]:
@@ -1037,6 +1054,10 @@ def run_bench(pipeline: Any, scenes: Sequence[BenchScene], runs: int = 5,
         report.notes.append("the model's graph takes no global_stride: scripts/optimize_onnx.py "
                             "MODEL adds it (exact at 1); at global_stride 4 the network takes "
                             "0.80-0.87x the time, an approximation (README, Parameters)")
+    if report.model.get("collapsed"):
+        report.notes.append("the model's network has collapsed (a layer more than 10% dead: "
+                            "see 'model health'): its dead channels cost time for nothing and "
+                            "its accuracy is not what a healthy network of this size gives")
     if report.model.get("untrained"):
         report.notes.append("the model is untrained: its timings are representative, its "
                             "precision/recall are not")

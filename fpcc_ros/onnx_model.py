@@ -12,7 +12,7 @@ import numpy as np
 import onnxruntime as ort
 
 from fpcc_ros.model_card import ModelCard, ModelCardError, card_path_for, load_card
-from fpcc_ros.weight_flush import WeightFlush, flush_tiny_weights
+from fpcc_ros.weight_flush import WeightFlush, dead_channels, flush_tiny_weights
 
 _log = logging.getLogger("fpcc_ros")
 
@@ -63,6 +63,9 @@ class FpccModel:
         except (OSError, ValueError) as exc:
             raise ModelLoadError(f"model file {self.path} is not a readable ONNX model ({exc}); "
                                  "re-export it with `fpcc export`") from exc
+        # dead channels (a weight row all ~0: the layer outputs a constant) mean a collapsed
+        # network: slow for nothing and inaccurate; say so where users look (log, bench)
+        self.dead_channels: dict[str, tuple[int, int]] = dead_channels(model_bytes)
         if self.flush.flushed:
             _log.warning("%s: %d of %d float weights were tiny (|w| < 1e-20; %d denormal) and are "
                          "set to 0 in memory (they slow Intel CPUs, not the outputs); "
@@ -79,6 +82,18 @@ class FpccModel:
             i.name for i in self.session.get_overridable_initializers()}
         self._check_signature()
         self._check_run()
+
+    def health_line(self) -> str:
+        """``tiny weights ...; dead channels: W 892/1024 (87%), ...`` (or ``no dead channels``)."""
+        dead = ", ".join(f"{name} {d}/{n} ({d / n:.0%})" for name, (d, n) in
+                         sorted(self.dead_channels.items(), key=lambda kv: -kv[1][0] / kv[1][1]))
+        return (f"{self.flush.flushed} tiny weights zeroed at load ({self.flush.denormal} "
+                f"denormal); " + (f"dead channels: {dead}" if dead else "no dead channels"))
+
+    @property
+    def collapsed(self) -> bool:
+        """A weight matrix with more than 10 % dead channels (model_health.py's limit)."""
+        return any(d / n > 0.1 for d, n in self.dead_channels.values())
 
     @property
     def active_providers(self) -> list[str]:

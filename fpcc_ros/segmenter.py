@@ -297,7 +297,12 @@ class SegmenterNode(Node):
         m, c = pipeline.model, pipeline.config
         self.get_logger().info(
             f"model {m.path} ({m.card.name}), providers {m.active_providers}, part_radius "
-            f"{c.part_radius:.4f} m, voxel {c.effective_voxel_size * 1000:.1f} mm")
+            f"{c.part_radius:.4f} m, voxel {c.effective_voxel_size * 1000:.1f} mm; "
+            f"health: {m.health_line()}")
+        if m.collapsed:
+            self.get_logger().warning(
+                f"model {m.path}: more than 10 % of a layer's channels are dead (the network "
+                "collapsed in training): expect poor instances; retrain it with this release")
 
     # ---- frames -----------------------------------------------------------------------------
     def _on_cloud(self, msg: PointCloud2) -> None:

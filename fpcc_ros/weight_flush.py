@@ -25,9 +25,12 @@ FLOAT = 1                       # TensorProto.DataType.FLOAT
 # field numbers (onnx.proto3)
 MODEL_GRAPH = 7
 GRAPH_NODE, GRAPH_INITIALIZER = 1, 5
-NODE_ATTRIBUTE = 5
+NODE_INPUT, NODE_OP_TYPE, NODE_ATTRIBUTE = 1, 4, 5
+WEIGHT_OPS = {"MatMul": None, "FusedMatMul": None, "Gemm": 1, "Conv": 1}  # None: any input
 ATTR_T, ATTR_G, ATTR_TENSORS, ATTR_GRAPHS = 5, 6, 10, 11
-TENSOR_DATA_TYPE, TENSOR_FLOAT_DATA, TENSOR_RAW_DATA, TENSOR_DATA_LOCATION = 2, 4, 9, 14
+TENSOR_DIMS, TENSOR_DATA_TYPE, TENSOR_FLOAT_DATA, TENSOR_NAME = 1, 2, 4, 8
+TENSOR_RAW_DATA, TENSOR_DATA_LOCATION = 9, 14
+DEAD_BELOW = 1e-20             # a weight row whose largest |w| is under this: a dead channel
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,15 @@ def flush_tiny_weights(model: bytes, below: float = FLUSH_BELOW) -> tuple[bytes,
     """``model`` with every float32 weight of magnitude under ``below`` (not zero) set to 0."""
     buf = bytearray(model)
     total = WeightFlush()
-    for start, end in _fields_of(buf, 0, len(buf), MODEL_GRAPH):
-        total += _flush_graph(buf, start, end, below)
+    for _, _, spans in _float_tensors(buf):
+        for a, b in spans:
+            values = np.frombuffer(buf, dtype="<f4", count=(b - a) // 4, offset=a)
+            magnitude = np.abs(values)
+            tiny = (values != 0) & (magnitude < below)
+            total += WeightFlush(len(values), int(((values != 0) & (magnitude < TINY)).sum()),
+                                 int(tiny.sum()))
+            if tiny.any():
+                buf[a:a + 4 * len(values)] = np.where(tiny, np.float32(0), values).astype("<f4").tobytes()
     return bytes(buf), total
 
 
@@ -57,54 +67,88 @@ def count_tiny_weights(model: bytes, below: float = FLUSH_BELOW) -> WeightFlush:
     return flush_tiny_weights(model, below)[1]
 
 
-def _flush_graph(buf: bytearray, start: int, end: int, below: float) -> WeightFlush:
-    total = WeightFlush()
+def dead_channels(model: bytes) -> dict[str, tuple[int, int]]:
+    """Weight matrix name -> (dead output channels, channels) for every 2-D float initializer
+    with a dead channel, as ../shared/tools/model_health.py counts them: a channel is dead when
+    every weight producing it is (nearly) zero, i.e. it outputs a constant. The output axis is
+    the one with more dead lines (exporters lay matrices out either way)."""
+    buf = bytearray(model)
+    weights = _weight_inputs(buf)
+    out = {}
+    for name, dims, spans in _float_tensors(buf):
+        if name not in weights or len(dims) != 2 or min(dims) < 8 or len(spans) != 1:
+            continue
+        a, b = spans[0]
+        if (b - a) // 4 != dims[0] * dims[1]:
+            continue
+        w = np.abs(np.frombuffer(buf, dtype="<f4", count=dims[0] * dims[1], offset=a)).reshape(dims)
+        rows, cols = int((w.max(axis=1) < DEAD_BELOW).sum()), int((w.max(axis=0) < DEAD_BELOW).sum())
+        dead, n = (rows, dims[0]) if rows >= cols else (cols, dims[1])
+        if dead:
+            out[name] = (dead, n)
+    return out
+
+
+def _weight_inputs(buf: bytearray) -> set[str]:
+    """Names the main graph's MatMul / Gemm / Conv nodes take as weights."""
+    names: set[str] = set()
+    for start, end in _fields_of(buf, 0, len(buf), MODEL_GRAPH):
+        for a, b in _fields_of(buf, start, end, GRAPH_NODE):
+            inputs, op = [], ""
+            for field, wire, c, d in _walk(buf, a, b):
+                if field == NODE_INPUT and wire == 2:
+                    inputs.append(bytes(buf[c:d]).decode("utf-8", "replace"))
+                elif field == NODE_OP_TYPE and wire == 2:
+                    op = bytes(buf[c:d]).decode("utf-8", "replace")
+            if op in WEIGHT_OPS:
+                names.update(inputs if WEIGHT_OPS[op] is None else inputs[1:2])
+    return names
+
+
+def _float_tensors(buf: bytearray):
+    """(name, dims, value spans) of every float32 tensor stored in the model (initializers,
+    Constant nodes' tensors, subgraphs); external data is skipped."""
+    for start, end in _fields_of(buf, 0, len(buf), MODEL_GRAPH):
+        yield from _graph_tensors(buf, start, end)
+
+
+def _graph_tensors(buf: bytearray, start: int, end: int):
     for field, wire, a, b in _walk(buf, start, end):
         if wire != 2:
             continue
         if field == GRAPH_INITIALIZER:
-            total += _flush_tensor(buf, a, b, below)
+            yield from _tensor(buf, a, b)
         elif field == GRAPH_NODE:
             for s, e in _fields_of(buf, a, b, NODE_ATTRIBUTE):
-                total += _flush_attribute(buf, s, e, below)
-    return total
+                for f, w, c, d in _walk(buf, s, e):
+                    if w == 2 and f in (ATTR_T, ATTR_TENSORS):
+                        yield from _tensor(buf, c, d)
+                    elif w == 2 and f in (ATTR_G, ATTR_GRAPHS):
+                        yield from _graph_tensors(buf, c, d)
 
 
-def _flush_attribute(buf: bytearray, start: int, end: int, below: float) -> WeightFlush:
-    total = WeightFlush()
-    for field, wire, a, b in _walk(buf, start, end):
-        if wire == 2 and field in (ATTR_T, ATTR_TENSORS):
-            total += _flush_tensor(buf, a, b, below)
-        elif wire == 2 and field in (ATTR_G, ATTR_GRAPHS):
-            total += _flush_graph(buf, a, b, below)
-    return total
-
-
-def _flush_tensor(buf: bytearray, start: int, end: int, below: float) -> WeightFlush:
-    data_type, external, spans = 0, False, []
+def _tensor(buf: bytearray, start: int, end: int):
+    data_type, external, name, dims, spans = 0, False, "", [], []
     for field, wire, a, b in _walk(buf, start, end):
         if field == TENSOR_DATA_TYPE and wire == 0:
             data_type = a
         elif field == TENSOR_DATA_LOCATION and wire == 0:
             external = a == 1
+        elif field == TENSOR_NAME and wire == 2:
+            name = bytes(buf[a:b]).decode("utf-8", "replace")
+        elif field == TENSOR_DIMS and wire == 0:
+            dims.append(a)
+        elif field == TENSOR_DIMS and wire == 2:          # packed
+            pos = a
+            while pos < b:
+                value, pos = _varint(buf, pos)
+                dims.append(value)
         elif field == TENSOR_RAW_DATA and wire == 2:
             spans.append((a, b))
         elif field == TENSOR_FLOAT_DATA and wire in (2, 5):   # packed, or one value each
             spans.append((a, b))
-    if data_type != FLOAT or external:
-        return WeightFlush()
-    total = WeightFlush()
-    for a, b in spans:
-        values = np.frombuffer(buf, dtype="<f4", count=(b - a) // 4, offset=a)
-        magnitude = np.abs(values)
-        tiny = (values != 0) & (magnitude < below)
-        found = WeightFlush(len(values), int(((values != 0) & (magnitude < TINY)).sum()),
-                            int(tiny.sum()))
-        if found.flushed:
-            flushed = np.where(tiny, np.float32(0), values).astype("<f4")
-            buf[a:a + 4 * len(values)] = flushed.tobytes()
-        total += found
-    return total
+    if data_type == FLOAT and not external:
+        yield name, dims, spans
 
 
 def _fields_of(buf: bytearray, start: int, end: int, wanted: int):

@@ -348,3 +348,27 @@ def test_a_global_stride_is_named_in_the_report(tiny_scene, tiny_pipeline, monke
     report.config["global_stride"] = 4
     assert "global feature over 1 in 4 points" in report.summary()
     assert "global feature over 1 in 4 points" in report.markdown()
+
+
+def test_the_cpu_vendor_is_named_beside_the_timings(tiny_scene, tiny_pipeline, monkeypatch):
+    assert bench.cpu_vendor("vendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R)\n") == \
+        "GenuineIntel"
+    assert bench.cpu_vendor("") == ""
+    monkeypatch.setattr(bench, "machine_info", lambda pipeline: {
+        "cpu": "Intel(R) Xeon(R) Platinum", "cpu_vendor": "GenuineIntel", "cpus": 2,
+        "cpu_vector": ["avx2", "avx512f", "amx_bf16"]})
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+    assert "GenuineIntel Intel(R) Xeon(R) Platinum (avx2 avx512f amx_bf16)" in report.summary()
+    assert "GenuineIntel" in report.markdown()
+
+
+def test_the_models_health_is_printed_and_a_collapsed_one_named(tiny_scene, tiny_pipeline,
+                                                               monkeypatch):
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+    assert "model health: 0 tiny weights zeroed at load (0 denormal); no dead channels" in \
+        report.summary()
+    assert not any("collapsed" in n for n in report.notes)
+    monkeypatch.setattr(tiny_pipeline.model, "dead_channels", {"glob_w": (892, 1024)})
+    report = bench.run_bench(tiny_pipeline, tiny_scene[:1], runs=1)
+    assert "dead channels: glob_w 892/1024 (87%)" in report.summary()
+    assert any("collapsed" in n for n in report.notes)
