@@ -1,9 +1,13 @@
-"""The classical baseline users compare FPCC against: plane removal + Euclidean clustering.
+"""The classical baselines users compare FPCC against: plane removal + Euclidean clustering or
+DBSCAN.
 
 This is the usual learning-free bin-picking recipe (PCL's SACSegmentation followed by
-EuclideanClusterExtraction): crop, remove the tote's floor and walls, then call every connected
-blob of points one part. It works when parts lie apart and merges parts that touch -- the case
-FPCC is for. Pure numpy/scipy and no ground truth anywhere, so the comparison is honest.
+EuclideanClusterExtraction with a minimum cluster size, or scikit-learn's DBSCAN): crop, remove
+the tote's floor and walls, then call every connected blob of points one part (Euclidean), or
+every blob of dense points (DBSCAN: a thin bridge of sparse points -- flying pixels between two
+parts, a grazing edge -- no longer joins them). Both drop clusters under a minimum size. They
+work when parts lie apart and merge parts that touch -- the case FPCC is for. Pure numpy/scipy
+and no ground truth anywhere, so the comparison is honest.
 
 Plane rule (why a plane is removed, and when not). In a bin the dominant plane is the floor
 (the tote's or the one it stands on) -- or, when a pile hides the floor, nothing real: a slice
@@ -37,6 +41,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from fpcc_ros.dbscan import dbscan, radius_pairs
 from fpcc_ros.features import voxel_downsample
 
 FLOOR_SHARE = 0.08          # the floor is at least this share of the scene's area
@@ -152,12 +157,60 @@ def cluster_foreground(xyz: np.ndarray, foreground: np.ndarray, tolerance: float
     return labels
 
 
+def dbscan_foreground(xyz: np.ndarray, foreground: np.ndarray, eps: float, min_samples: int,
+                      min_cluster_size: int, voxel_size: float | None = None) -> np.ndarray:
+    """DBSCAN (fpcc_ros.dbscan) over the foreground points: (N,) uint32 labels, 0 = none.
+
+    Runs on voxel representatives like :func:`cluster_foreground` (``voxel_size`` None = eps/3,
+    0 = off), each weighted by the input points it stands for, so ``min_samples`` and
+    ``min_cluster_size`` count input points (a sweep over ``min_samples`` calls
+    :func:`representative_graph` once per eps and :func:`fpcc_ros.dbscan.dbscan` per setting).
+    """
+    labels = np.zeros(len(xyz), np.uint32)
+    idx = np.flatnonzero(foreground)
+    if len(idx) == 0:
+        return labels
+    reps, weights, inverse, pairs = representative_graph(xyz, idx, eps, voxel_size)
+    rep_labels = dbscan(reps, eps, min_samples, min_cluster_size, weights=weights, pairs=pairs)
+    labels[idx] = rep_labels[inverse].astype(np.uint32)
+    return labels
+
+
+def representative_graph(xyz: np.ndarray, idx: np.ndarray, eps: float,
+                         voxel_size: float | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel representatives of ``xyz[idx]`` (voxel None = eps/3): ``(reps, weights, inverse,
+    pairs)`` -- the input points each stands for, the representative of every ``idx`` row, and
+    the radius-``eps`` pairs between representatives."""
+    pts = np.asarray(xyz, dtype=np.float64)[idx]
+    voxel = eps * VOXEL_PER_TOLERANCE if voxel_size is None else voxel_size
+    keep, inverse = voxel_downsample(pts, voxel)
+    weights = np.bincount(inverse, minlength=len(keep)).astype(np.float64)
+    reps = pts[keep]
+    return reps, weights, inverse, radius_pairs(reps, eps)
+
+
+def dbscan_clusters(xyz: np.ndarray, eps: float, min_samples: int, min_cluster_size: int,
+                    voxel_size: float | None = None, roi: Roi | None = None, *,
+                    plane_tolerance: float = 0.005, max_planes: int = MAX_PLANES,
+                    seed: int = 0) -> np.ndarray:
+    """The DBSCAN baseline on one cloud: (N, 3) with NaNs allowed -> (N,) uint32 labels, 0 = none.
+
+    The same crop and floor/wall removal as :func:`euclidean_clusters`, then
+    :func:`dbscan_foreground`. ``min_samples`` counts the point itself (as scikit-learn does).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    mask, _ = foreground_mask(xyz, plane_tolerance, roi, max_planes, seed)
+    return dbscan_foreground(xyz, mask, eps, min_samples, min_cluster_size, voxel_size)
+
+
 def euclidean_clusters(xyz: np.ndarray, tolerance: float, min_points: int, voxel_size: float | None,
                        roi: Roi | None = None, *, plane_tolerance: float = 0.005,
                        max_planes: int = MAX_PLANES, seed: int = 0) -> np.ndarray:
-    """The whole baseline on one cloud: (N, 3) with NaNs allowed -> (N,) uint32 labels, 0 = none.
+    """The Euclidean baseline on one cloud: (N, 3), NaNs allowed -> (N,) uint32 labels, 0 = none.
 
-    ``roi`` is ``(min_xyz, max_xyz)`` or None; ``voxel_size`` None means tolerance/3;
+    ``min_points`` is the minimum cluster size (input points); ``roi`` is ``(min_xyz, max_xyz)``
+    or None; ``voxel_size`` None means tolerance/3;
     ``max_planes`` 0 turns plane removal off.
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)

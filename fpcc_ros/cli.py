@@ -19,7 +19,7 @@ COMMANDS = {
     "export": ("export", "export a trained checkpoint to ONNX + model card"),
     "calibrate": ("calibrate", "choose score threshold, feature gate and screening factor on "
                   "validation scenes; --write stores them in the model card"),
-    "eval": ("evaluate", "precision/recall at IoU 0.5, MUCov, MWCov vs a clustering baseline"),
+    "eval": ("evaluate", "precision/recall at IoU 0.5, MUCov, MWCov vs tuned clustering baselines"),
     "render": ("render", "PNG of labels and center scores of a scene or segmented output"),
     "bench": ("bench", "latency per stage, end to end, memory and accuracy"),
     "part-info": ("part_info", "d_max of a part mesh and a suggested part_radius"),

@@ -1,10 +1,12 @@
-"""FPCC against the Euclidean-clustering baseline on labelled scenes (DESIGN.md §4b).
+"""FPCC against the classical baselines on labelled scenes (DESIGN.md §4b).
 
-For every scene NPZ both methods segment the SAME points; counts are taken under the ``paper``
+For every scene NPZ all methods segment the SAME points; counts are taken under the ``paper``
 and ``visible`` protocols (fpcc_ros.metrics) and summed over the set before any ratio is formed.
-The baseline runs at every tolerance of a sweep and is reported at its best one (best F1 of the
-summed precision and recall, per protocol) -- the strongest version of it a user could tune, so
-FPCC is never compared against a strawman. Timings are per scene, wall clock.
+The baselines (crop + floor/wall removal, then Euclidean clustering or DBSCAN, small clusters
+dropped) are tuned as a careful user would tune them (fpcc_ros.baseline_sweep): every setting
+of a grid on the first few scenes, the best one per protocol then run on every scene. FPCC is
+reported against the stronger of the two on the whole set, so it is never compared against a
+strawman. Timings are per scene, wall clock.
 """
 from __future__ import annotations
 
@@ -17,16 +19,15 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from fpcc_ros.baseline import cluster_foreground, default_plane_tolerance, foreground_mask
-from fpcc_ros.metrics import VISIBLE_MIN_POINTS, InstanceCounts, scene_counts, visible_threshold
+from fpcc_ros.baseline import default_plane_tolerance, foreground_mask
+from fpcc_ros.baseline_sweep import (DEFAULT_TUNE_SCENES, METHOD_NAMES, METHODS, SELECTION_RULE,
+                                     MIN_CLUSTER_SIZES, MIN_SAMPLES, Grid, Setting, choose,
+                                     default_distances, sweep_scene)
+from fpcc_ros.metrics import (VISIBLE_MIN_POINTS, InstanceCounts, f1_score, scene_counts,
+                              visible_threshold)
 
 PROTOCOLS = ("paper", "visible")
-REPORT_FORMAT = "fpcc_ros/eval-report/1"
-# Default baseline sweep as fractions of d_max: 0.002..0.02 m for a 0.1 m part. Below ~2 % the
-# gaps between scan points split parts; above ~20 % every touching pair merges.
-TOLERANCE_FRACTIONS = np.geomspace(0.02, 0.2, 7)
-SELECTION_RULE = ("best F1 = 2PR/(P+R) of precision and recall summed over all scenes, per "
-                  "protocol; ties go to the smaller tolerance")
+REPORT_FORMAT = "fpcc_ros/eval-report/2"  # 2: two tuned baselines (issue 24)
 
 
 class EvalError(ValueError):
@@ -100,19 +101,15 @@ def _load_text_scene(path: Path, columns: str) -> Scene:
                  part_radius=None, shape=(len(xyz),))
 
 
-def default_tolerances(part_radius: float) -> list[float]:
-    """The baseline sweep for parts of this d_max, in metres (rounded to 0.1 mm)."""
-    return sorted({round(float(f * part_radius), 4) for f in TOLERANCE_FRACTIONS} - {0.0})
-
-
 @dataclass
 class BaselineRun:
-    """The baseline on one scene at one tolerance."""
+    """A baseline on one scene at one (chosen) setting."""
 
-    tolerance: float
+    setting: Setting
     counts: dict[str, InstanceCounts]
     predicted: int
-    ms: float                # plane removal (shared by the sweep) + clustering at this tolerance
+    ms: float                # crop + plane removal + clustering at this setting
+    planes_ms: float = 0.0   # the crop + plane removal part of ms
 
 
 @dataclass
@@ -130,46 +127,66 @@ class SceneResult:
     fpcc_stages_ms: dict[str, float] = field(default_factory=dict)
     baseline: list[BaselineRun] = field(default_factory=list)
 
-    def baseline_at(self, tolerance: float) -> BaselineRun | None:
-        return next((run for run in self.baseline if run.tolerance == tolerance), None)
+    def baseline_at(self, setting: Setting | None) -> BaselineRun | None:
+        return next((run for run in self.baseline if run.setting == setting), None)
 
 
 @dataclass
 class EvalReport:
     scenes: list[SceneResult]
     protocols: tuple[str, ...]
-    tolerances: list[float]
+    grid: Grid | None = None             # None: no baseline
     skipped: list[tuple[str, str]] = field(default_factory=list)
     model: dict[str, Any] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
     part_radius_source: str = "scene"
+    tune_scenes: list[str] = field(default_factory=list)
+    # every grid setting's counts summed over the tuning scenes, and the choice per method/protocol
+    tuning: dict[Setting, dict[str, InstanceCounts]] = field(default_factory=dict)
+    chosen: dict[str, dict[str, Setting]] = field(default_factory=dict)
 
     # -- totals (counts summed over scenes, then ratios) -------------------------------------
     def fpcc_totals(self, protocol: str) -> InstanceCounts:
         return sum((s.fpcc[protocol] for s in self.scenes), InstanceCounts())
 
-    def baseline_totals(self, protocol: str, tolerance: float) -> InstanceCounts:
-        runs = (s.baseline_at(tolerance) for s in self.scenes)
+    def baseline_setting(self, method: str, protocol: str) -> Setting | None:
+        """The setting tuned for ``method`` under ``protocol`` (None without a baseline)."""
+        return self.chosen.get(method, {}).get(protocol)
+
+    def baseline_totals(self, protocol: str, method: str | None = None) -> InstanceCounts | None:
+        """A baseline's counts over every scene at its tuned setting; ``method`` None = the
+        stronger one (:meth:`stronger_baseline`)."""
+        method = method or self.stronger_baseline(protocol)
+        setting = self.baseline_setting(method, protocol) if method else None
+        if setting is None:
+            return None
+        runs = (s.baseline_at(setting) for s in self.scenes)
         return sum((r.counts[protocol] for r in runs if r is not None), InstanceCounts())
 
-    def best_tolerance(self, protocol: str) -> float | None:
-        """The sweep's best tolerance by :data:`SELECTION_RULE`; None without a baseline."""
+    def stronger_baseline(self, protocol: str) -> str | None:
+        """The method whose tuned setting scores the higher F1 on the whole set (what FPCC is
+        compared with; a tie goes to Euclidean clustering, the simpler)."""
         best, best_f1 = None, -1.0
-        for tol in self.tolerances:  # ascending, so ties keep the smaller tolerance
-            f1 = f1_score(self.baseline_totals(protocol, tol))
-            if f1 > best_f1:
-                best, best_f1 = tol, f1
+        for method in METHODS:
+            if self.baseline_setting(method, protocol) is not None:
+                f1 = f1_score(self.baseline_totals(protocol, method))
+                if f1 > best_f1:
+                    best, best_f1 = method, f1
         return best
+
+    def baseline_ms(self, method: str, protocol: str | None = None) -> list[float]:
+        """Time per scene of ``method`` at its tuned setting (crop + planes + clustering)."""
+        setting = self.baseline_setting(method, protocol or self.primary)
+        return [r.ms for s in self.scenes if (r := s.baseline_at(setting)) is not None]
 
     # -- output --------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
         """The whole report as JSON-ready data (counts as well as ratios, so sets can be merged)."""
-        best = {p: self.best_tolerance(p) for p in self.protocols}
         totals = {}
         for p in self.protocols:
-            base = self.baseline_totals(p, best[p]) if best[p] is not None else None
             totals[p] = {"fpcc": _summary(self.fpcc_totals(p)),
-                         "baseline": _summary(base) if base is not None else None}
+                         "baseline": _maybe_summary(self.baseline_totals(p)),
+                         **{m: _maybe_summary(self.baseline_totals(p, m)) for m in METHODS}}
         return {
             "format": REPORT_FORMAT,
             "model": self.model,
@@ -178,23 +195,39 @@ class EvalReport:
             "scenes_evaluated": len(self.scenes),
             "skipped": [{"scene": name, "reason": why} for name, why in self.skipped],
             "totals": totals,
-            "baseline": {
-                "method": "plane removal (floor + walls, fpcc_ros.baseline) then Euclidean "
-                          "clustering (connected components of the radius graph)",
-                "tolerances_m": list(self.tolerances),
-                "best_tolerance_m": best,
-                "selection": SELECTION_RULE,
-                "plane_tolerance": "5% of part_radius, clipped to 2-10 mm",
-                "min_points": self.config.get("min_points"),
-                "by_tolerance": {p: [{"tolerance_m": t, **_summary(self.baseline_totals(p, t))}
-                                     for t in self.tolerances] for p in self.protocols},
-            },
-            "timings_ms": {
-                "fpcc": _stats([s.fpcc_ms for s in self.scenes]),
-                "baseline_at_best": _stats([r.ms for s in self.scenes
-                                            if (r := s.baseline_at(best[self.primary])) is not None]),
-            },
-            "scenes": [self._scene_json(s, best) for s in self.scenes],
+            "baseline": self._baseline_json(),
+            "timings_ms": {"fpcc": _stats([s.fpcc_ms for s in self.scenes]),
+                           **{m: _stats(self.baseline_ms(m)) for m in METHODS
+                              if self.baseline_setting(m, self.primary)}},
+            "scenes": [self._scene_json(s) for s in self.scenes],
+        }
+
+    def _baseline_json(self) -> dict[str, Any] | None:
+        if self.grid is None:
+            return None
+        methods = {}
+        for m in METHODS:
+            ranked = {p: sorted((s for s in self.tuning if s.method == m),
+                                key=lambda s: -f1_score(self.tuning[s][p]))[:10]
+                      for p in self.protocols}
+            methods[m] = {
+                "name": METHOD_NAMES[m],
+                "setting": {p: self.baseline_setting(m, p).to_json() for p in self.protocols},
+                "tuning_totals": {p: _summary(self.tuning[self.baseline_setting(m, p)][p])
+                                  for p in self.protocols},
+                "top_tuning_settings": {p: [{**s.to_json(), **_summary(self.tuning[s][p])}
+                                            for s in ranked[p]] for p in self.protocols},
+            }
+        return {
+            "stronger": {p: self.stronger_baseline(p) for p in self.protocols},
+            "method": "crop (the pipeline's roi_min/roi_max, if set), floor and wall removal "
+                      "(fpcc_ros.baseline), then Euclidean clustering or DBSCAN, clusters under "
+                      "a minimum size dropped",
+            "plane_tolerance": "5% of part_radius, clipped to 2-10 mm",
+            "tune_scenes": list(self.tune_scenes),
+            "selection": SELECTION_RULE,
+            "grid": self.grid.to_json(),
+            "methods": methods,
         }
 
     @property
@@ -203,15 +236,18 @@ class EvalReport:
         return "visible" if "visible" in self.protocols else self.protocols[0]
 
     def table(self, protocol: str | None = None) -> str:
-        """Per-scene text table for one protocol, with a totals row."""
+        """Per-scene text table for one protocol, FPCC beside the stronger baseline, totals row."""
         p = protocol or self.primary
-        tol = self.best_tolerance(p)
+        method = self.stronger_baseline(p)
+        setting = self.baseline_setting(method, p) if method else None
         width = max([len(s.scene) for s in self.scenes] + [len("total"), 5])
         head = (f"{'scene':<{width}} {'GT':>4} {'visGT':>5} {'pred':>5} {'P':>6} {'R':>6} "
                 f"{'MUCov':>6} {'MWCov':>6} | {'base P':>6} {'base R':>6} | {'fpcc ms':>8} "
                 f"{'base ms':>8}")
-        lines = [f"per scene, {p} protocol" + (f" (baseline at {_mm(tol)})" if tol else ""),
-                 head, "-" * len(head)]
+        title = f"per scene, {p} protocol"
+        if setting is not None:
+            title += f" (baseline: {setting.describe()})"
+        lines = [title, head, "-" * len(head)]
 
         def row(name, gt, vis, c, b, fms, bms) -> str:
             base = f"{b.precision:>6.3f} {b.recall:>6.3f}" if b is not None else f"{'-':>6} {'-':>6}"
@@ -219,28 +255,28 @@ class EvalReport:
                     f"{c.recall:>6.3f} {c.mucov:>6.3f} {c.mwcov:>6.3f} | {base} | {fms:>8} {bms:>8}")
 
         for s in self.scenes:
-            run = s.baseline_at(tol) if tol is not None else None
-            lines.append(row(s.scene, s.gt_instances, s.visible_gt, s.fpcc[p],
+            run = s.baseline_at(setting)
+            mark = "*" if s.scene in self.tune_scenes else ""
+            lines.append(row(s.scene + mark, s.gt_instances, s.visible_gt, s.fpcc[p],
                              run.counts[p] if run else None, f"{s.fpcc_ms:.0f}",
                              f"{run.ms:.0f}" if run else "-"))
         lines.append("-" * len(head))
         lines.append(row("total", sum(s.gt_instances for s in self.scenes),
                          sum(s.visible_gt for s in self.scenes), self.fpcc_totals(p),
-                         self.baseline_totals(p, tol) if tol is not None else None,
+                         self.baseline_totals(p),
                          f"{sum(s.fpcc_ms for s in self.scenes):.0f}",
-                         f"{sum(r.ms for s in self.scenes if (r := s.baseline_at(tol))):.0f}"
-                         if tol is not None else "-"))
+                         f"{sum(self.baseline_ms(method, p)):.0f}" if method else "-"))
+        if self.tune_scenes:
+            lines.append("* tuning scene of the baselines")
         return "\n".join(lines)
 
     def summary(self) -> str:
-        """FPCC and the baseline side by side for every protocol, totals over the set."""
-        best = {p: self.best_tolerance(p) for p in self.protocols}
+        """FPCC and the stronger baseline side by side for every protocol, totals over the set."""
         cols = [(p, m) for p in self.protocols for m in ("FPCC", "baseline")]
         lines = [f"summary over {len(self.scenes)} scenes (counts summed, then ratios)",
                  f"{'':<14}" + "".join(f"{p:^22}" for p in self.protocols),
                  f"{'':<14}" + "".join(f"{m:>11}" for _, m in cols)]
-        counts = {(p, m): (self.fpcc_totals(p) if m == "FPCC" else
-                           self.baseline_totals(p, best[p]) if best[p] is not None else None)
+        counts = {(p, m): self.fpcc_totals(p) if m == "FPCC" else self.baseline_totals(p)
                   for p, m in cols}
         for label, get in (("precision", lambda c: c.precision), ("recall", lambda c: c.recall),
                            ("F1", f1_score), ("MUCov", lambda c: c.mucov),
@@ -248,24 +284,11 @@ class EvalReport:
             lines.append(f"{label:<14}" + "".join(
                 f"{get(c):>11.3f}" if c is not None else f"{'-':>11}" for c in counts.values()))
         lines.append(f"{'TP/pred/GT':<14}" + "".join(
-            f"{f'{c.true_positives}/{c.predictions}/{c.ground_truths}':>11}" if c is not None
+            f" {f'{c.true_positives}/{c.predictions}/{c.ground_truths}':>10}" if c is not None
             else f"{'-':>11}" for c in counts.values()))
-        if self.tolerances:
-            chosen = ", ".join(f"{p} {_mm(best[p])}" for p in self.protocols)
-            lines.append(f"baseline: floor/wall removal + Euclidean clustering at its best "
-                         f"tolerance: {chosen}")
-            lines.append(f"  of {len(self.tolerances)} tried "
-                         f"({', '.join(f'{t * 1e3:g}' for t in self.tolerances)} mm), chosen by "
-                         f"{SELECTION_RULE}")
-        else:
-            lines.append("baseline: not run")
+        lines.extend(self._baseline_lines())
         fpcc_ms = _stats([s.fpcc_ms for s in self.scenes])["median"]
-        timing = f"time per scene (median): FPCC {fpcc_ms:.0f} ms"
-        if self.tolerances:
-            base_ms = _stats([r.ms for s in self.scenes
-                              if (r := s.baseline_at(best[self.primary]))])["median"]
-            timing += f", baseline {base_ms:.0f} ms (plane removal + clustering at one tolerance)"
-        lines.append(timing)
+        lines.append(f"time per scene (median): FPCC {fpcc_ms:.0f} ms")
         source = "each scene's own" if self.part_radius_source == "scene" else "fixed by the user"
         lines.append(f"part_radius: {source}")
         if self.skipped:
@@ -273,44 +296,69 @@ class EvalReport:
                          + ", ".join(name for name, _ in self.skipped))
         return "\n".join(lines)
 
-    def _scene_json(self, s: SceneResult, best: dict[str, float | None]) -> dict[str, Any]:
-        baseline = {}
+    def _baseline_lines(self) -> list[str]:
+        """Which baseline is the stronger, both tuned settings with their scores and times."""
+        if self.grid is None:
+            return ["baseline: not run"]
+        lines = ["baseline = the stronger on this set of: crop + floor/wall removal, then "
+                 + " or ".join(METHOD_NAMES[m] for m in METHODS) + ", each tuned on "
+                 + f"{len(self.tune_scenes)} scene(s) ({', '.join(self.tune_scenes)})"]
         for p in self.protocols:
-            run = s.baseline_at(best[p]) if best[p] is not None else None
-            baseline[p] = {"tolerance_m": run.tolerance, "predicted": run.predicted, "ms": run.ms,
-                           **_summary(run.counts[p])} if run else None
+            stronger = self.stronger_baseline(p)
+            for m in METHODS:
+                c = self.baseline_totals(p, m)
+                setting = self.baseline_setting(m, p)
+                runs = [r for s in self.scenes if (r := s.baseline_at(setting)) is not None]
+                ms = _stats([r.ms for r in runs])["median"]
+                planes = _stats([r.planes_ms for r in runs])["median"]
+                lines.append(f"  {p:<8}{'*' if m == stronger else ' '} {setting.describe()}: "
+                             f"P {c.precision:.3f} R {c.recall:.3f} F1 {f1_score(c):.3f}, "
+                             f"{ms:.0f} ms per scene (median; crop + planes {planes:.0f})")
+        g = self.grid
+        lines.append(f"  grid: distance {', '.join(f'{d * 1e3:g}' for d in g.distances)} mm; "
+                     f"min_samples {', '.join(map(str, g.min_samples))}; min cluster "
+                     f"{', '.join(map(str, g.min_cluster_sizes))} points; {SELECTION_RULE}")
+        return lines
+
+    def _scene_json(self, s: SceneResult) -> dict[str, Any]:
+        baseline: dict[str, Any] = {}
+        for m in METHODS:
+            for p in self.protocols:
+                run = s.baseline_at(self.baseline_setting(m, p))
+                baseline.setdefault(m, {})[p] = {
+                    **run.setting.to_json(), "predicted": run.predicted, "ms": run.ms,
+                    "planes_ms": run.planes_ms,
+                    **_summary(run.counts[p])} if run else None
         return {
             "scene": s.scene, "points": s.points, "valid_points": s.valid_points,
             "part_radius": s.part_radius, "visible_threshold": s.visible_threshold,
             "gt_instances": s.gt_instances, "visible_gt": s.visible_gt, "predicted": s.predicted,
             "fpcc": {p: _summary(s.fpcc[p]) for p in self.protocols},
             "fpcc_ms": s.fpcc_ms, "fpcc_stages_ms": s.fpcc_stages_ms,
+            "tuning_scene": s.scene in self.tune_scenes,
             "baseline": baseline,
-            "baseline_sweep": [{"tolerance_m": r.tolerance, "predicted": r.predicted, "ms": r.ms,
-                                **{p: asdict(r.counts[p]) for p in self.protocols}}
-                               for r in s.baseline],
         }
-
-
-def f1_score(counts: InstanceCounts) -> float:
-    """2PR/(P+R) from counts: 2 TP / (predictions + ground truths)."""
-    total = counts.predictions + counts.ground_truths
-    return 2 * counts.true_positives / total if total else 0.0
 
 
 def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float] | None = None,
              protocols: Sequence[str] = PROTOCOLS, *, baseline: bool = True,
+             min_samples: Sequence[int] = MIN_SAMPLES,
+             min_cluster_sizes: Sequence[int] = MIN_CLUSTER_SIZES,
+             tune_scenes: int = DEFAULT_TUNE_SCENES,
              fixed_part_radius: bool = False,
              progress: Callable[[Iterable], Iterable] | None = None,
              warn: Callable[[str], None] | None = None,
              columns: str | None = None) -> EvalReport:
-    """Evaluate ``pipeline`` (anything with ``segment(xyz)`` and ``config``) and the baseline.
+    """Evaluate ``pipeline`` (anything with ``segment(xyz)`` and ``config``) and the baselines.
 
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
     ``columns`` names the columns of .txt scenes (see :func:`load_scene`).
-    ``tolerances`` None = :func:`default_tolerances` of the median part radius; ``baseline``
-    False or an empty list skips the baseline. Scenes without any instance are skipped (listed
-    in ``report.skipped`` and passed to ``warn``); :class:`EvalError` if none is left.
+    The baselines are tuned on the first ``tune_scenes`` evaluated scenes over ``tolerances``
+    (link distances, metres; None = :func:`default_distances` of the median part radius) x
+    ``min_samples`` (DBSCAN) x ``min_cluster_sizes``, then run at the chosen settings on every
+    scene; ``baseline`` False or an empty ``tolerances`` skips them. Scenes without any instance
+    are skipped (listed in ``report.skipped`` and passed to ``warn``); :class:`EvalError` if
+    none is left.
     """
     protocols = tuple(protocols)
     bad = [p for p in protocols if p not in PROTOCOLS]
@@ -319,18 +367,21 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     paths = [Path(s) for s in scenes]
     if not paths:
         raise EvalError("no scenes to evaluate")
+    if tune_scenes < 1:
+        raise EvalError(f"baseline tuning scenes {tune_scenes} must be at least 1")
     radii = {path: _scene_radius(path, pipeline, fixed_part_radius) for path in paths}
-    if not baseline:
-        sweep: list[float] = []
-    elif tolerances is None:
-        sweep = default_tolerances(float(np.median(list(radii.values()))))
-    else:
-        sweep = sorted({float(t) for t in tolerances})
-        if any(not math.isfinite(t) or t <= 0 for t in sweep):
-            raise EvalError(f"baseline tolerances {sweep} must be positive lengths in metres")
-    report = EvalReport(scenes=[], protocols=protocols, tolerances=sweep,
+    grid = None
+    if baseline and (tolerances is None or len(tolerances)):
+        distances = default_distances(float(np.median(list(radii.values())))) \
+            if tolerances is None else tolerances
+        try:
+            grid = Grid(tuple(distances), tuple(min_samples), tuple(min_cluster_sizes))
+        except ValueError as exc:
+            raise EvalError(str(exc)) from exc
+    report = EvalReport(scenes=[], protocols=protocols, grid=grid,
                         model=_model_info(pipeline), config=_config_info(pipeline.config),
                         part_radius_source="fixed" if fixed_part_radius else "scene")
+    tuner = _Tuner(report, tune_scenes) if grid is not None else None
     for path in (progress or (lambda it: it))(paths):
         scene = load_scene(path, columns)
         if not (scene.instance > 0).any():
@@ -339,48 +390,113 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
             if warn:
                 warn(f"skipping {path}: {reason}")
             continue
-        report.scenes.append(_evaluate_scene(scene, _with_part_radius(pipeline, radii[path], path),
-                                             sweep, protocols))
+        scene_pipeline = _with_part_radius(pipeline, radii[path], path)
+        report.scenes.append(_evaluate_scene(scene, scene_pipeline, protocols))
+        if tuner is not None:
+            tuner.add(report.scenes[-1], _BaselineInput.of(scene, scene_pipeline.config,
+                                                           protocols))
     if not report.scenes:
         raise EvalError(f"none of the {len(paths)} scenes has ground-truth instances "
                         "('instance' > 0); nothing to evaluate")
+    if tuner is not None:
+        tuner.finish()
     return report
 
 
-def _evaluate_scene(scene: Scene, pipeline, sweep: list[float],
-                    protocols: tuple[str, ...]) -> SceneResult:
+def _evaluate_scene(scene: Scene, pipeline, protocols: tuple[str, ...]) -> SceneResult:
     cfg = pipeline.config
     finite = np.isfinite(scene.xyz).all(axis=1)  # points with no return take part in no metric
     gt = scene.instance[finite]
     limit = scene.visible_threshold
 
-    def counts(labels: np.ndarray) -> dict[str, InstanceCounts]:
-        return {p: scene_counts(labels[finite], gt, p, min_visible=limit) for p in protocols}
-
     t0 = time.perf_counter()
     result = pipeline.segment(scene.xyz)
     fpcc_ms = (time.perf_counter() - t0) * 1e3
 
-    runs = []
-    if sweep:
-        roi_min, roi_max = getattr(cfg, "roi_min", None), getattr(cfg, "roi_max", None)
-        roi = (roi_min, roi_max) if roi_min is not None else None
-        t0 = time.perf_counter()
-        mask, _ = foreground_mask(scene.xyz, default_plane_tolerance(cfg.part_radius), roi)
-        planes_ms = (time.perf_counter() - t0) * 1e3
-        for tol in sweep:
-            t0 = time.perf_counter()
-            labels = cluster_foreground(scene.xyz, mask, tol, getattr(cfg, "min_points", 50))
-            ms = planes_ms + (time.perf_counter() - t0) * 1e3
-            runs.append(BaselineRun(tol, counts(labels), int(labels.max(initial=0)), ms))
-
+    labels = np.asarray(result.labels)[finite]
     sizes = np.bincount(gt[gt > 0])
     return SceneResult(scene=scene.name, points=len(scene.xyz), valid_points=int(finite.sum()),
                        part_radius=float(cfg.part_radius), visible_threshold=limit,
                        gt_instances=int((sizes > 0).sum()), visible_gt=int((sizes >= limit).sum()),
                        predicted=int(len(np.unique(result.labels[result.labels > 0]))),
-                       fpcc=counts(np.asarray(result.labels)), fpcc_ms=fpcc_ms,
-                       fpcc_stages_ms=dict(getattr(result, "timings_ms", {}) or {}), baseline=runs)
+                       fpcc={p: scene_counts(labels, gt, p, min_visible=limit) for p in protocols},
+                       fpcc_ms=fpcc_ms,
+                       fpcc_stages_ms=dict(getattr(result, "timings_ms", {}) or {}))
+
+
+@dataclass
+class _BaselineInput:
+    """What the baselines need of one scene: its points, the crop + plane removal mask (computed
+    once, timed once: it is part of every setting's time) and the ground truth it is scored on."""
+
+    xyz: np.ndarray          # (N, 3) float64
+    foreground: np.ndarray   # (N,) bool
+    planes_ms: float
+    finite: np.ndarray
+    gt: np.ndarray           # ground truth of the finite points
+    limit: int
+    protocols: tuple[str, ...]
+
+    @classmethod
+    def of(cls, scene: Scene, cfg, protocols: tuple[str, ...]) -> "_BaselineInput":
+        xyz = scene.xyz.astype(np.float64)
+        roi_min, roi_max = getattr(cfg, "roi_min", None), getattr(cfg, "roi_max", None)
+        roi = (roi_min, roi_max) if roi_min is not None else None
+        t0 = time.perf_counter()
+        mask, _ = foreground_mask(xyz, default_plane_tolerance(cfg.part_radius), roi)
+        planes_ms = (time.perf_counter() - t0) * 1e3
+        finite = np.isfinite(xyz).all(axis=1)
+        return cls(xyz, mask, planes_ms, finite, scene.instance[finite], scene.visible_threshold,
+                   protocols)
+
+    def run(self, setting: Setting) -> BaselineRun:
+        t0 = time.perf_counter()
+        labels = setting.run(self.xyz, self.foreground)
+        ms = self.planes_ms + (time.perf_counter() - t0) * 1e3
+        counts = {p: scene_counts(labels[self.finite], self.gt, p, min_visible=self.limit)
+                  for p in self.protocols}
+        return BaselineRun(setting, counts, int(len(np.unique(labels[labels > 0]))), ms,
+                           self.planes_ms)
+
+
+class _Tuner:
+    """Sweeps the grid on the first ``count`` scenes, then runs the chosen settings on all."""
+
+    def __init__(self, report: EvalReport, count: int):
+        self.report, self.count = report, count
+        self.pending: list[tuple[SceneResult, _BaselineInput]] = []
+
+    def add(self, result: SceneResult, data: _BaselineInput) -> None:
+        report = self.report
+        if report.chosen:
+            self._run_chosen(result, data)
+            return
+        counts = sweep_scene(data.xyz, data.foreground, data.gt, data.finite, data.protocols,
+                             data.limit, report.grid)
+        for setting, by_protocol in counts.items():
+            total = report.tuning.setdefault(setting, {p: InstanceCounts()
+                                                       for p in data.protocols})
+            for p, c in by_protocol.items():
+                total[p] = total[p] + c
+        report.tune_scenes.append(result.scene)
+        self.pending.append((result, data))
+        if len(self.pending) >= self.count:
+            self.finish()
+
+    def finish(self) -> None:
+        """Choose (if not yet) and run the choice on the tuning scenes held back."""
+        report = self.report
+        if not report.chosen:
+            for method in METHODS:
+                report.chosen[method] = {p: choose(report.tuning, method, p)
+                                         for p in report.protocols}
+        for result, data in self.pending:
+            self._run_chosen(result, data)
+        self.pending.clear()
+
+    def _run_chosen(self, result: SceneResult, data: _BaselineInput) -> None:
+        settings = sorted({s for by_p in self.report.chosen.values() for s in by_p.values()})
+        result.baseline.extend(data.run(s) for s in settings)
 
 
 def _scene_radius(path: Path, pipeline, fixed: bool) -> float:
@@ -442,12 +558,12 @@ def _summary(counts: InstanceCounts) -> dict[str, Any]:
             "weighted_cov_sum": counts.weighted_cov_sum, "gt_points": counts.gt_points}
 
 
+def _maybe_summary(counts: InstanceCounts | None) -> dict[str, Any] | None:
+    return None if counts is None else _summary(counts)
+
+
 def _stats(values: list[float]) -> dict[str, float]:
     if not values:
         return {"mean": 0.0, "median": 0.0, "max": 0.0}
     return {"mean": float(np.mean(values)), "median": float(np.median(values)),
             "max": float(np.max(values))}
-
-
-def _mm(tolerance: float | None) -> str:
-    return "-" if tolerance is None else f"{tolerance * 1e3:g} mm"

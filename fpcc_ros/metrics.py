@@ -96,22 +96,40 @@ def scene_counts(pred: np.ndarray, gt: np.ndarray, protocol: str = "visible",
     gt = np.asarray(gt).reshape(-1).astype(np.int64)
     if pred.shape != gt.shape:
         raise ValueError(f"prediction has {pred.size} points but ground truth has {gt.size}")
-    if protocol == "visible":
-        limit = VISIBLE_MIN_POINTS if min_visible is None else min_visible
-        sizes = np.bincount(gt, minlength=1)
-        small = np.flatnonzero(sizes < limit)
-        small = small[small > 0]
-        keep = ~np.isin(gt, small)
-        pred, gt = pred[keep], gt[keep]
-    elif protocol != "paper":
-        raise ValueError(f"protocol={protocol!r} is unknown; use 'paper' or 'visible'")
+    keep = evaluated_points(gt, protocol, min_visible)
+    pred, gt = pred[keep], gt[keep]
     iou, _, gt_ids = iou_matrix(pred, gt)
     gt_sizes = np.bincount(np.searchsorted(gt_ids, gt[gt > 0]), minlength=len(gt_ids))
-    best = iou.max(axis=0) if iou.shape[0] else np.zeros(len(gt_ids))
+    return counts_from_iou(iou, gt_sizes)
+
+
+def evaluated_points(gt: np.ndarray, protocol: str, min_visible: int | None = None) -> np.ndarray:
+    """Mask of the points a protocol scores: all under ``paper``; under ``visible`` the points of
+    GT instances with fewer than ``min_visible`` points (default 300) are removed."""
+    if protocol == "paper":
+        return np.ones(len(gt), bool)
+    if protocol != "visible":
+        raise ValueError(f"protocol={protocol!r} is unknown; use 'paper' or 'visible'")
+    limit = VISIBLE_MIN_POINTS if min_visible is None else min_visible
+    sizes = np.bincount(gt, minlength=1)
+    small = np.flatnonzero(sizes < limit)
+    return ~np.isin(gt, small[small > 0])
+
+
+def counts_from_iou(iou: np.ndarray, gt_sizes: np.ndarray) -> InstanceCounts:
+    """Counts from the (P, G) IoU matrix of one scene and the G ground-truth sizes (a baseline
+    sweep drops rows of one matrix instead of re-scoring every minimum cluster size)."""
+    best = iou.max(axis=0) if iou.shape[0] else np.zeros(len(gt_sizes))
     return InstanceCounts(true_positives=match_instances(iou), predictions=iou.shape[0],
-                          ground_truths=len(gt_ids), cov_sum=float(best.sum()),
+                          ground_truths=len(gt_sizes), cov_sum=float(best.sum()),
                           weighted_cov_sum=float((best * gt_sizes).sum()),
                           gt_points=int(gt_sizes.sum()))
+
+
+def f1_score(counts: InstanceCounts) -> float:
+    """2PR/(P+R) from counts: 2 TP / (predictions + ground truths)."""
+    total = counts.predictions + counts.ground_truths
+    return 2 * counts.true_positives / total if total else 0.0
 
 
 def visible_threshold(num_pixels: int) -> int:

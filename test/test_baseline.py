@@ -1,8 +1,11 @@
-"""The Euclidean-clustering baseline on hand-built scenes whose right answer is known by design."""
+"""The clustering baselines (Euclidean, DBSCAN) and their sweep on hand-built scenes whose right
+answer is known by design."""
 import numpy as np
 import pytest
 
-from fpcc_ros.baseline import euclidean_clusters, find_planes, foreground_mask
+from fpcc_ros.baseline import dbscan_clusters, euclidean_clusters, find_planes, foreground_mask
+from fpcc_ros.baseline_sweep import METHODS, Grid, choose, sweep_scene
+from fpcc_ros.metrics import f1_score, scene_counts
 
 STEP = 0.005  # grid spacing of every synthetic surface / solid (m)
 
@@ -133,3 +136,89 @@ def test_tote_floor_and_walls_removed():
     labels = euclidean_clusters(xyz, tolerance=0.01, min_points=20, voxel_size=None,
                                 plane_tolerance=0.003)
     assert same_partition(labels, gt)
+
+
+# -- DBSCAN and the sweep -------------------------------------------------------------------------
+# A case whose best setting is known by construction (5 mm grid, solid 4 cm cubes of 9^3 = 729
+# points, 2 cm above a floor that plane removal takes):
+#   A, B  8 mm apart face to face: a link distance of 10 mm merges them, 6 mm keeps them apart;
+#   C, D  30 mm apart, joined by a bridge of 5 background points 5 mm apart (label 0): at eps
+#         6 mm a bridge point has 3 points within eps (itself and two neighbours; the end ones a
+#         bridge and a cube point), a cube point 4 (corner) to 7 (inside), one more where the
+#         bridge touches. min_samples 5: every cube point is core or borders one, the bridge is
+#         noise except its two ends (borders of C and D): C and D apart. min_samples 1 (and
+#         Euclidean clustering at any tolerance that links the cubes' own grid) joins them;
+#   E     a chip of 3^3 = 27 points far away (label 0): a cluster of its own unless clusters
+#         under 50 points are dropped (1000 would drop the cubes too).
+# At 3 mm nothing links (the grid is 5 mm); at 6 mm no point is core at min_samples 20 (7 at
+# most); at 10 mm A and B merge.
+BEST_DBSCAN = (0.006, 5, 50)
+
+
+def bridge_scene() -> tuple[np.ndarray, np.ndarray]:
+    a, b = cube((0.05, 0.05, 1.02)), cube((0.05 + 0.04 + 0.008, 0.05, 1.02))
+    c, d = cube((0.05, 0.25, 1.02)), cube((0.05 + 0.04 + 0.03, 0.25, 1.02))
+    bridge = np.c_[0.09 + 0.005 * np.arange(1, 6), np.full(5, 0.27), np.full(5, 1.04)]
+    chip = cube((0.32, 0.32, 1.03), size=0.01)
+    return scene(a, b, c, d, background=(FLOOR, bridge, chip))
+
+
+def test_dbscan_baseline_splits_a_sparse_bridge_that_euclidean_follows():
+    xyz, gt = bridge_scene()
+    labels = dbscan_clusters(xyz, *BEST_DBSCAN, plane_tolerance=0.0025)
+    parts = gt > 0
+    assert same_partition(labels[parts], gt[parts])          # A, B, C, D: four clusters
+    assert labels.max() == 4                                  # chip dropped, bridge not a part
+    assert (labels[:len(FLOOR)] == 0).all()                   # floor removed
+    euclid = euclidean_clusters(xyz, 0.006, 50, None, plane_tolerance=0.0025)
+    assert euclid.max() == 3                                  # A, B and C+D through the bridge
+    assert len(np.unique(euclid[np.isin(gt, [3, 4])])) == 1
+
+
+def _tuned(methods, grid):
+    xyz, gt = bridge_scene()
+    mask, _ = foreground_mask(xyz, 0.0025)
+    finite = np.ones(len(xyz), bool)
+    counts = sweep_scene(xyz, mask, gt, finite, ["paper"], 300, grid, methods)
+    return xyz, gt, mask, counts
+
+
+def test_sweep_picks_the_known_best_dbscan_setting():
+    grid = Grid((0.003, 0.006, 0.01), (1, 5, 20), (1, 50, 1000))
+    _, _, _, counts = _tuned(["dbscan"], grid)
+    assert len(counts) == 27
+    best = choose(counts, "dbscan", "paper")
+    assert (best.distance, best.min_samples, best.min_cluster_size) == BEST_DBSCAN
+    c = counts[best]["paper"]
+    assert (c.true_positives, c.predictions, c.ground_truths) == (4, 4, 4)
+    assert sum(f1_score(v["paper"]) == 1.0 for v in counts.values()) == 1   # the only perfect one
+
+
+def test_sweep_tunes_the_euclidean_minimum_cluster_size():
+    """Euclidean clustering at 6 mm: A, B and C+D (IoU 729/1463 with C or D: no match); the chip
+    is a fourth cluster unless the minimum size (50) drops it: TP 2, pred 3, GT 4, F1 4/7
+    (with the chip, pred 4: F1 1/2)."""
+    grid = Grid((0.003, 0.006, 0.01), (1, 5, 20), (1, 50, 1000))
+    _, _, _, counts = _tuned(["euclidean"], grid)
+    assert {s.min_samples for s in counts} == {1} and len(counts) == 9
+    best = choose(counts, "euclidean", "paper")
+    assert (best.distance, best.min_cluster_size) == (0.006, 50)
+    assert f1_score(counts[best]["paper"]) == pytest.approx(4 / 7)
+    keep_chip = next(s for s in counts if (s.distance, s.min_cluster_size) == (0.006, 1))
+    assert f1_score(counts[keep_chip]["paper"]) == pytest.approx(1 / 2)
+
+
+def test_sweep_counts_match_running_each_setting():
+    """The sweep scores minimum sizes by dropping rows of one IoU matrix; running each setting
+    and scoring its labels from scratch (fpcc_ros.metrics.scene_counts) must agree."""
+    grid = Grid((0.006, 0.01), (1, 5), (1, 50, 800))
+    xyz, gt, mask, counts = _tuned(METHODS, grid)
+    for setting, by_protocol in counts.items():
+        assert by_protocol["paper"] == scene_counts(setting.run(xyz, mask), gt, "paper")
+
+
+def test_grid_rejects_nonsense_with_the_field_named():
+    with pytest.raises(ValueError, match="min_samples"):
+        Grid((0.006,), (0,), (1,))
+    with pytest.raises(ValueError, match="distances"):
+        Grid((-0.006,), (1,), (1,))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fpcc_ros.cli import main as cli_main
-from fpcc_ros.evaluation import (EvalError, SceneError, default_tolerances, evaluate, f1_score,
-                                 load_scene)
+from fpcc_ros.baseline_sweep import DEFAULT_TUNE_SCENES, Setting, default_distances
+from fpcc_ros.evaluation import EvalError, SceneError, evaluate, f1_score, load_scene
 from fpcc_ros.pipeline import PipelineConfig, SegmentationResult
 
 TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
@@ -70,7 +70,8 @@ def test_perfect_prediction_scores_one_and_visible_drops_slivers(tmp_path):
     # organized 48 x 64: visible threshold = round(300 * 3072 / 307200) = 3 points
     sliver = np.array([[0.2, 0.2, 0.95], [0.2, 0.21, 0.95]])         # instance 4: 2 points
     gt = write_scene(tmp_path / "a.npz", [*ROW, sliver], extra=FLOOR, organized=(48, 64))
-    report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), tolerances=[0.008])
+    report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), tolerances=[0.008],
+                      min_samples=[1], min_cluster_sizes=[50])
     scene = report.scenes[0]
     assert (scene.gt_instances, scene.visible_gt, scene.visible_threshold) == (4, 3, 3)
     paper, visible = report.fpcc_totals("paper"), report.fpcc_totals("visible")
@@ -78,11 +79,13 @@ def test_perfect_prediction_scores_one_and_visible_drops_slivers(tmp_path):
     assert (visible.true_positives, visible.predictions, visible.ground_truths) == (3, 3, 3)
     for c in (paper, visible):
         assert c.precision == c.recall == c.mucov == c.mwcov == 1.0
-    # the baseline at 8 mm links the 5 mm grid and finds the parts; the 2-point sliver is under
-    # min_points (50), so it misses one of 4 under paper and none under visible
-    base_paper = report.baseline_totals("paper", 0.008)
-    assert (base_paper.true_positives, base_paper.predictions, base_paper.ground_truths) == (3, 3, 4)
-    assert report.baseline_totals("visible", 0.008).recall == 1.0
+    # the baselines at 8 mm link the 5 mm grid and find the parts; the 2-point sliver is under
+    # the minimum cluster size (50), so they miss one of 4 under paper and none under visible
+    for method in ("euclidean", "dbscan"):
+        base_paper = report.baseline_totals("paper", method)
+        assert (base_paper.true_positives, base_paper.predictions,
+                base_paper.ground_truths) == (3, 3, 4)
+        assert report.baseline_totals("visible", method).recall == 1.0
     data = report.to_json()
     assert data["totals"]["visible"]["fpcc"]["precision"] == 1.0
     assert data["scenes"][0]["visible_gt"] == 3
@@ -97,23 +100,27 @@ def test_unorganized_scene_uses_300_points(tmp_path):
     report = evaluate([tmp_path / "u.npz"], GroundTruthPipeline([gt]), baseline=False)
     s = report.scenes[0]
     assert (s.visible_threshold, s.gt_instances, s.visible_gt) == (300, 4, 3)
-    assert report.tolerances == [] and report.best_tolerance("visible") is None
+    assert report.grid is None and report.baseline_totals("visible") is None
     assert report.to_json()["totals"]["visible"]["baseline"] is None
 
 
 def test_best_tolerance_is_the_one_that_scores_best(tmp_path):
-    """3 mm: below the 5 mm grid, every point alone -> nothing (F1 0). 8 mm: the three parts
-    exactly (F1 1). 0.2 m: wider than the whole row (0.17 m), one cluster, IoU 1/3 (F1 0).
-    (Up to 8 mm the clustering voxel, tol/3, is finer than the grid: no downsampling at all.)"""
+    """3 mm: below the 5 mm grid, every point alone -> nothing over 50 points (F1 0). 8 mm: the
+    three parts exactly (F1 1). 0.2 m: wider than the whole row (0.17 m), one cluster, IoU 1/3
+    (F1 0). (Up to 8 mm the clustering voxel, tol/3, is finer than the grid: no downsampling.)"""
     gt = write_scene(tmp_path / "a.npz", ROW, extra=FLOOR, organized=(48, 64))
     report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]),
-                      tolerances=[0.2, 0.003, 0.008])
-    assert report.tolerances == [0.003, 0.008, 0.2]
-    f1 = [f1_score(report.baseline_totals("paper", t)) for t in report.tolerances]
+                      tolerances=[0.2, 0.003, 0.008], min_samples=[1], min_cluster_sizes=[50])
+    assert report.grid.distances == (0.003, 0.008, 0.2)
+    f1 = [f1_score(report.tuning[Setting("euclidean", t, 1, 50)]["paper"])
+          for t in report.grid.distances]
     assert f1 == [0.0, 1.0, 0.0]
-    assert report.best_tolerance("paper") == report.best_tolerance("visible") == 0.008
-    assert report.to_json()["baseline"]["best_tolerance_m"] == {"paper": 0.008, "visible": 0.008}
-    assert [r.predicted for r in report.scenes[0].baseline] == [0, 3, 1]
+    chosen = {p: report.baseline_setting("euclidean", p).distance for p in ("paper", "visible")}
+    assert chosen == {"paper": 0.008, "visible": 0.008}
+    data = report.to_json()["baseline"]["methods"]["euclidean"]
+    assert data["setting"]["visible"] == {"method": "euclidean", "distance_m": 0.008,
+                                          "min_cluster_size": 50}
+    assert [r.predicted for r in report.scenes[0].baseline] == [3, 3]   # euclidean, dbscan
 
 
 def test_best_tolerance_uses_counts_summed_over_scenes(tmp_path):
@@ -123,15 +130,90 @@ def test_best_tolerance_uses_counts_summed_over_scenes(tmp_path):
     gt_a = write_scene(tmp_path / "a.npz", ROW, extra=FLOOR)
     gt_b = write_scene(tmp_path / "b.npz", near, extra=FLOOR)
     report = evaluate([tmp_path / "a.npz", tmp_path / "b.npz"],
-                      GroundTruthPipeline([gt_a, gt_b]), tolerances=[0.006, 0.008], protocols=["paper"])
+                      GroundTruthPipeline([gt_a, gt_b]), tolerances=[0.006, 0.008],
+                      protocols=["paper"], min_samples=[1], min_cluster_sizes=[50],
+                      tune_scenes=2)
     # 6 mm: a 3/3 correct, b 2/2 correct -> TP 5, pred 5, GT 5 (F1 1)
     # 8 mm: a 3/3 correct; b one cluster with IoU exactly 1/2 to each cube (>= 0.5: one match)
     #       -> TP 4, pred 4, GT 5 (F1 8/9)
-    totals = {t: report.baseline_totals("paper", t) for t in report.tolerances}
+    totals = {t: report.tuning[Setting("euclidean", t, 1, 50)]["paper"]
+              for t in report.grid.distances}
     assert (totals[0.006].true_positives, totals[0.006].predictions) == (5, 5)
     assert (totals[0.008].true_positives, totals[0.008].predictions) == (4, 4)
     assert f1_score(totals[0.008]) == pytest.approx(8 / 9)
-    assert report.best_tolerance("paper") == 0.006
+    assert report.baseline_setting("euclidean", "paper").distance == 0.006
+    assert report.tune_scenes == ["a.npz", "b.npz"]
+
+
+def _bridge_scene(path: Path) -> np.ndarray:
+    """test_baseline's bridge case (A, B 8 mm apart; C, D joined by a sparse bridge; a chip) as
+    a scene NPZ: DBSCAN at eps 6 mm, min_samples 5, min cluster 50 finds all four parts (F1 1),
+    Euclidean clustering at best 6 mm / 50 merges C and D (F1 4/7)."""
+    from test_baseline import bridge_scene
+
+    xyz, gt = bridge_scene()
+    np.savez(path, points=xyz.astype(np.float32), instance=gt.astype(np.int32),
+             center_score=np.zeros(len(gt), np.float32), part_radius=np.float32(0.05))
+    return gt.astype(np.int32)
+
+
+GRID = dict(tolerances=[0.003, 0.006, 0.01], min_cluster_sizes=[1, 50, 1000], protocols=["paper"])
+
+
+def test_fpcc_is_reported_against_the_stronger_baseline(tmp_path):
+    gt = _bridge_scene(tmp_path / "a.npz")
+    report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), min_samples=[1, 5, 20],
+                      **GRID)
+    assert report.stronger_baseline("paper") == "dbscan"
+    dbscan = report.baseline_setting("dbscan", "paper")
+    assert (dbscan.distance, dbscan.min_samples, dbscan.min_cluster_size) == (0.006, 5, 50)
+    assert f1_score(report.baseline_totals("paper")) == 1.0
+    assert f1_score(report.baseline_totals("paper", "euclidean")) == pytest.approx(4 / 7)
+    data = report.to_json()
+    assert data["baseline"]["stronger"] == {"paper": "dbscan"}
+    assert data["totals"]["paper"]["baseline"] == data["totals"]["paper"]["dbscan"]
+    assert data["totals"]["paper"]["euclidean"]["f1"] == pytest.approx(4 / 7)   # both kept
+    assert data["scenes"][0]["baseline"]["euclidean"]["paper"]["distance_m"] == 0.006
+    summary = report.summary()
+    assert "paper   * DBSCAN, eps 6 mm, min_samples 5, min cluster 50: P 1.000 R 1.000 F1 " \
+           "1.000" in summary
+    assert "paper     Euclidean clustering, tolerance 6 mm, min cluster 50: P 0.667 R 0.500 " \
+           "F1 0.571" in summary
+    assert "(baseline: DBSCAN, eps 6 mm, min_samples 5, min cluster 50)" in report.table("paper")
+
+    # DBSCAN allowed only min_samples 20 and eps up to 6 mm (no point is core: 7 within 6 mm at
+    # most): Euclidean clustering is the stronger
+    weak = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), min_samples=[20],
+                    **{**GRID, "tolerances": [0.003, 0.006]})
+    assert weak.stronger_baseline("paper") == "euclidean"
+    assert weak.baseline_totals("paper") == weak.baseline_totals("paper", "euclidean")
+    assert weak.to_json()["totals"]["paper"]["dbscan"]["f1"] == 0.0
+    assert "paper   * Euclidean clustering, tolerance 6 mm" in weak.summary()
+
+
+def test_baselines_are_tuned_on_the_first_scenes_only(tmp_path):
+    """Scene b holds four cubes 4 cm across scanned at 10 mm (5^3 = 125 points each, 6 cm apart)
+    above the floor: nothing links at 6 mm, so b alone would choose 10 mm. Tuned on a only, the
+    report keeps a's choice and shows what it does on b: no part found."""
+    gt_a = _bridge_scene(tmp_path / "a.npz")
+    cubes = [grid((x, 0.05, 1.02), (x + 0.04, 0.09, 1.06), 0.01) for x in (0.0, 0.1, 0.2, 0.3)]
+    gt_b = write_scene(tmp_path / "b.npz", cubes, extra=FLOOR)
+    report = evaluate([tmp_path / "a.npz", tmp_path / "b.npz"],
+                      GroundTruthPipeline([gt_a, gt_b]), min_samples=[1, 5, 20], tune_scenes=1,
+                      **GRID)
+    assert report.tune_scenes == ["a.npz"]
+    assert report.baseline_setting("dbscan", "paper").distance == 0.006
+    on_b = report.scenes[1].baseline_at(report.baseline_setting("dbscan", "paper"))
+    assert on_b.counts["paper"].true_positives == 0 and on_b.counts["paper"].ground_truths == 4
+    # summed over both scenes: TP 4 (all on a), predictions 4, ground truths 8
+    assert f1_score(report.baseline_totals("paper", "dbscan")) == pytest.approx(2 * 4 / (4 + 8))
+    assert report.to_json()["scenes"][1]["tuning_scene"] is False
+
+
+def test_tuning_scene_count_must_be_positive(tmp_path):
+    gt = write_scene(tmp_path / "a.npz", ROW)
+    with pytest.raises(EvalError, match="tuning scenes 0"):
+        evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]), tune_scenes=0)
 
 
 def test_scene_part_radius_unless_fixed(tmp_path):
@@ -148,10 +230,11 @@ def test_scene_part_radius_unless_fixed(tmp_path):
     assert report.to_json()["pipeline"]["part_radius_source"] == "fixed"
 
 
-def test_default_tolerances_scale_with_part_radius():
-    assert default_tolerances(0.1) == pytest.approx([0.002, 0.0029, 0.0043, 0.0063, 0.0093,
-                                                     0.0136, 0.02])
-    assert default_tolerances(0.05)[0] == 0.001 and default_tolerances(0.05)[-1] == 0.01
+def test_default_distances_scale_with_part_radius():
+    # 10 steps, ratio 10 ** (1/9) = 1.2916, from 2 % to 20 % of d_max, rounded to 0.1 mm
+    assert default_distances(0.1) == pytest.approx([0.002, 0.0026, 0.0033, 0.0043, 0.0056,
+                                                    0.0072, 0.0093, 0.012, 0.0155, 0.02])
+    assert default_distances(0.05)[0] == 0.001 and default_distances(0.05)[-1] == 0.01
 
 
 def test_scenes_without_instances_skipped_then_error(tmp_path):
@@ -203,8 +286,12 @@ def test_command_end_to_end(tmp_path, capsys):
     assert report["protocols"] == ["paper", "visible"]
     assert [s["scene"] for s in report["scenes"]] == ["s1.npz", "s2.npz"]
     assert report["totals"]["visible"]["fpcc"]["ground_truths"] == 5
-    assert report["baseline"]["best_tolerance_m"]["visible"] == 0.008
+    euclid = report["baseline"]["methods"]["euclidean"]["setting"]["visible"]
+    assert euclid["distance_m"] == 0.008
+    assert report["baseline"]["tune_scenes"] == ["s1.npz", "s2.npz"]   # both, of 3 by default
     assert report["totals"]["visible"]["baseline"]["precision"] == 1.0
+    assert {"euclidean", "dbscan"} <= set(report["totals"]["visible"])
+    assert "tuned on 2 scene(s) (s1.npz, s2.npz)" in out and DEFAULT_TUNE_SCENES == 3
     assert report["model"]["name"] == "tiny_fpcc"
     assert "s1.npz" in out and "summary over 2 scenes" in out
 
@@ -219,7 +306,7 @@ def test_command_options(tmp_path, capsys):
     assert rc == 0
     report = json.loads(out.read_text())
     assert report["protocols"] == ["paper"] and len(report["scenes"]) == 1
-    assert report["baseline"]["tolerances_m"] == [] and report["totals"]["paper"]["baseline"] is None
+    assert report["baseline"] is None and report["totals"]["paper"]["baseline"] is None
     assert report["scenes"][0]["part_radius"] == 0.04
 
 
@@ -287,12 +374,13 @@ def test_text_scenes_are_evaluated_like_their_npz_with_a_fixed_part_radius(tmp_p
         assert scene.part_radius is None and scene.shape == (len(gt),)
         np.testing.assert_array_equal(scene.instance, gt)
         pipeline = GroundTruthPipeline([gt])
-        from_text = evaluate([txt], pipeline, tolerances=[0.008], fixed_part_radius=True,
-                             columns=columns)
-        from_npz = evaluate([npz], pipeline, tolerances=[0.008])
+        sweep = dict(tolerances=[0.008], min_samples=[1, 5], min_cluster_sizes=[50])
+        from_text = evaluate([txt], pipeline, fixed_part_radius=True, columns=columns, **sweep)
+        from_npz = evaluate([npz], pipeline, **sweep)
         assert from_text.fpcc_totals("visible") == from_npz.fpcc_totals("visible")
-        assert from_text.baseline_totals("visible", 0.008) == \
-            from_npz.baseline_totals("visible", 0.008)
+        for method in ("euclidean", "dbscan"):
+            assert from_text.baseline_totals("visible", method) == \
+                from_npz.baseline_totals("visible", method)
     # without a fixed radius: a clear error naming the fix
     with pytest.raises(SceneError, match="text scene has no part radius.*--part-radius"):
         evaluate([tmp_path / "a_peer.txt"], GroundTruthPipeline([gt]), columns="peer")
