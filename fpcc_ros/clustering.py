@@ -384,3 +384,106 @@ def merge_centers(num_centers: int, pairs: np.ndarray) -> np.ndarray:
         if a != b and linked[np.ix_(group == a, group == b)].all():
             group[(group == a) | (group == b)] = min(a, b)
     return group
+
+
+# A center claims a fragment when its labels there are at least this share of all its labels
+# or of the fragment (counted in input points): a piece of its part, not a stray bit.
+CLAIM_SHARE = 0.2
+
+
+def connect_fragments(labels: np.ndarray, fragment: np.ndarray, weights: np.ndarray,
+                      xyz: np.ndarray, d_max: float, min_points: int,
+                      claim_share: float = CLAIM_SHARE) -> np.ndarray:
+    """Instance labels from point-wise center labels (``labels``: 1..C, 0 = none, e.g. the
+    paper's nearest center) decided per geometric fragment (``fragment``: 1..K, 0 = noise, e.g.
+    :func:`fpcc_ros.dbscan.dbscan`'s). Votes are counted in input points (``weights`` per row).
+
+    Connectivity knows where a part ends unless it touches another; the centers know which
+    pieces are one part unless the network is wrong. A center *claims* a fragment where its
+    labels are at least ``claim_share`` of all its labels or of the fragment (a piece of its
+    part, or a fragment mostly its own; not a stray bit). Then:
+
+    * a claimed fragment that fits in a part (bounding-box diagonal at most 2 ``d_max``) is one
+      part: all of it goes to its strongest claimant. A part cut in two by an occluder is two
+      fragments claimed by one center: they join;
+    * a larger claimed fragment is touching parts: a point keeps its label when that center
+      claims the fragment (the paper's rule, point by point), so the centers split it;
+    * a center whose pieces together do not fit in a part (2 ``d_max``) keeps only the piece
+      holding most of its points: a wrong vote does not chain parts across the bin;
+    * what is left of each fragment (all of it when no center claims it: a part the network
+      found no center for) is an instance of its own when it holds ``min_points`` input points
+      and fits in a part (the tote's walls do not), else noise.
+
+    Returns labels 1..C for the centers' instances, C+1.. for the kept leftovers (in fragment
+    order), 0 for noise.
+    """
+    labels = np.asarray(labels, dtype=np.int64)
+    fragment = np.asarray(fragment, dtype=np.int64)
+    n = len(labels)
+    c = int(labels.max(initial=0))
+    out = np.zeros(n, np.int32)
+    k = int(fragment.max(initial=0))
+    if k == 0:
+        return out
+    w = np.asarray(weights, dtype=np.float64)
+    pts = np.asarray(xyz, dtype=np.float64)
+    votes = np.bincount(fragment * (c + 1) + labels, weights=w,
+                        minlength=(k + 1) * (c + 1)).reshape(k + 1, c + 1)[:, 1:]
+    size = np.bincount(fragment, weights=w, minlength=k + 1)
+    claim = (votes >= claim_share * np.minimum(votes.sum(axis=0)[None, :], size[:, None])) \
+        & (votes > 0)
+    claim[0] = False
+    claimed = claim.any(axis=1)
+
+    # a claimed fragment the size of a part: its strongest claimant's, whole
+    fits = _diagonals(pts, fragment, k) <= 2.0 * d_max
+    whole = fits & claimed
+    strongest = np.argmax(np.where(claim, votes, -1.0), axis=1) + 1 if c else np.zeros(k + 1, int)
+    in_whole = whole[fragment]
+    out[in_whole] = strongest[fragment[in_whole]]
+    # a larger one: its claimants' own labels, point by point
+    own = (labels > 0) & ~in_whole & claimed[fragment]
+    own[own] = claim[fragment[own], labels[own] - 1]
+    out[own] = labels[own]
+    # a center's pieces must fit in one part together, else it keeps its largest
+    out = _largest_piece_when_spread(out, fragment, w, pts, c, k, d_max)
+
+    # leftovers, per fragment: an instance when big enough and small enough to be a part
+    left = (out == 0) & (fragment > 0)
+    left_size = np.bincount(fragment[left], weights=w[left], minlength=k + 1)
+    keep = np.flatnonzero(left_size >= max(min_points, 1))
+    keep = keep[keep > 0]
+    if len(keep):
+        keep = keep[_diagonals(pts[left], fragment[left], k)[keep] <= 2.0 * d_max]
+        new_id = np.zeros(k + 1, np.int32)
+        new_id[keep] = c + 1 + np.arange(len(keep), dtype=np.int32)
+        out[left] = new_id[fragment[left]]
+    return out
+
+
+def _largest_piece_when_spread(out: np.ndarray, fragment: np.ndarray, w: np.ndarray,
+                               pts: np.ndarray, c: int, k: int, d_max: float) -> np.ndarray:
+    """``out`` with each label 1..c whose points' bounding box is wider than 2 ``d_max`` kept
+    on the fragment holding most of its points only (the rest: 0)."""
+    rows = np.flatnonzero(out > 0)
+    if len(rows) == 0:
+        return out
+    spread = _diagonals(pts[rows], out[rows], c) > 2.0 * d_max
+    rows = rows[spread[out[rows]]]
+    if len(rows) == 0:
+        return out
+    piece = np.bincount(out[rows] * (k + 1) + fragment[rows], weights=w[rows],
+                        minlength=(c + 1) * (k + 1)).reshape(c + 1, k + 1)
+    largest = np.argmax(piece, axis=1)
+    out[rows[fragment[rows] != largest[out[rows]]]] = 0
+    return out
+
+
+def _diagonals(pts: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
+    """(k + 1,) bounding-box diagonal of the rows of each group 0..k (0 for an empty one)."""
+    lo = np.full((3, k + 1), np.inf)
+    hi = np.full((3, k + 1), -np.inf)
+    for d in range(3):
+        np.minimum.at(lo[d], group, pts[:, d])
+        np.maximum.at(hi[d], group, pts[:, d])
+    return np.sqrt((np.maximum(hi - lo, 0.0) ** 2).sum(axis=0))

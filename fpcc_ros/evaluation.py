@@ -348,8 +348,11 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
              fixed_part_radius: bool = False,
              progress: Callable[[Iterable], Iterable] | None = None,
              warn: Callable[[str], None] | None = None,
-             columns: str | None = None) -> EvalReport:
+             columns: str | None = None, oracle: bool = False) -> EvalReport:
     """Evaluate ``pipeline`` (anything with ``segment(xyz)`` and ``config``) and the baselines.
+
+    ``oracle``: each scene's ground truth stands in for the network (fpcc_ros.oracle), so
+    the FPCC figures are the ceiling of the pipeline's clustering on these scenes.
 
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
     ``columns`` names the columns of .txt scenes (see :func:`load_scene`).
@@ -381,6 +384,9 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     report = EvalReport(scenes=[], protocols=protocols, grid=grid,
                         model=_model_info(pipeline), config=_config_info(pipeline.config),
                         part_radius_source="fixed" if fixed_part_radius else "scene")
+    if oracle:
+        from fpcc_ros.oracle import oracle_for_scene
+        report.model["oracle_embeddings"] = "ground truth in place of the network"
     tuner = _Tuner(report, tune_scenes) if grid is not None else None
     for path in (progress or (lambda it: it))(paths):
         scene = load_scene(path, columns)
@@ -391,7 +397,9 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
                 warn(f"skipping {path}: {reason}")
             continue
         scene_pipeline = _with_part_radius(pipeline, radii[path], path)
-        report.scenes.append(_evaluate_scene(scene, scene_pipeline, protocols))
+        report.scenes.append(_evaluate_scene(
+            scene, oracle_for_scene(scene_pipeline, path) if oracle else scene_pipeline,
+            protocols))
         if tuner is not None:
             tuner.add(report.scenes[-1], _BaselineInput.of(scene, scene_pipeline.config,
                                                            protocols))

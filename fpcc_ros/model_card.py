@@ -15,6 +15,7 @@ from fpcc_ros.features import FEATURE_NAMES
 
 CARD_FORMAT = "fpcc_ros/model-card/1"
 EMBEDDING_DIM = 128
+CLUSTERINGS = ("paper", "connected")   # the pipeline's clustering modes
 MAX_GLOBAL_STRIDE = 16   # beyond 8 the shipped net already lost 2.6 F1 points (README)
 
 
@@ -40,6 +41,10 @@ class ModelCard:
     knn_reach: int = 0
     global_stride: int = 1   # the global feature's max over every s-th point of a block (the
     #   graph's optional global_stride input, graph_rewrite.add_global_stride); 1 = all, exact
+    clustering: str = "paper"   # one of CLUSTERINGS (PipelineConfig.clustering)
+    fragment_radius: float = 0.06  # connected: DBSCAN eps in part radii
+    fragment_density: int = 20     # connected: DBSCAN min_samples in input points
+    fragment_min_points: int = 200  # connected: smallest instance without a center
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
     trained_on: dict[str, Any] = field(default_factory=dict)
@@ -137,6 +142,17 @@ def _check_values(card: ModelCard, path: Path) -> None:
          isinstance(card.global_stride, int) and not isinstance(card.global_stride, bool)
          and 1 <= card.global_stride <= MAX_GLOBAL_STRIDE,
          f"an integer from 1 (every point) to {MAX_GLOBAL_STRIDE}"),
+        ("clustering", card.clustering, card.clustering in CLUSTERINGS,
+         f"one of {list(CLUSTERINGS)}"),
+        ("fragment_radius", card.fragment_radius,
+         _number(card.fragment_radius) and 0.01 <= card.fragment_radius <= 1.0,
+         "between 0.01 and 1 part radii"),
+        ("fragment_density", card.fragment_density,
+         isinstance(card.fragment_density, int) and not isinstance(card.fragment_density, bool)
+         and 1 <= card.fragment_density <= 10_000, "an integer from 1 to 10000 input points"),
+        ("fragment_min_points", card.fragment_min_points,
+         isinstance(card.fragment_min_points, int) and not isinstance(card.fragment_min_points, bool)
+         and card.fragment_min_points >= 1, "an integer >= 1 (input points)"),
         ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
          f"{list(FEATURE_NAMES)} (this runtime's features)"),
     ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from fpcc_ros.model_card import CLUSTERINGS
 from fpcc_ros.onnx_model import FpccModel, default_model_path
 from fpcc_ros.pipeline import Pipeline, PipelineConfig
 from fpcc_ros.view import VIEW_AXES
@@ -29,6 +30,16 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--global-stride", type=int, default=None,
                        help="the network's global feature over every s-th point of a block "
                        "(1 = every point, exact; default: the model card's)")
+    group.add_argument("--clustering", default=None, choices=CLUSTERINGS,
+                       help="paper: every point to the nearest center in feature space (§3.2); "
+                       "connected: geometric fragments (DBSCAN) decided by the centers' labels "
+                       "(default: the model card's)")
+    group.add_argument("--fragment-radius", type=float, default=None,
+                       help="connected: DBSCAN eps in part radii")
+    group.add_argument("--fragment-density", type=int, default=None,
+                       help="connected: DBSCAN min_samples in input points")
+    group.add_argument("--fragment-min-points", type=int, default=None,
+                       help="connected: smallest instance without a center, input points")
     group.add_argument("--view-axis", default=None, choices=VIEW_AXES,
                        help="the direction the camera looks along in the cloud's frame: +z for a "
                        "camera optical frame (synth scenes), -z for a z-up world/base frame "
@@ -56,7 +67,8 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
-             "roi_max", "view_axis", "global_stride")
+             "roi_max", "view_axis", "global_stride", "clustering", "fragment_radius",
+             "fragment_density", "fragment_min_points")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

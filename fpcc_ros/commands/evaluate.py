@@ -50,6 +50,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="N", help="tune the baselines on the first N scenes, then run "
                         "the chosen settings on all (default: %(default)s)")
     parser.add_argument("--no-baseline", action="store_true", help="evaluate FPCC only")
+    parser.add_argument("--oracle-embeddings", action="store_true",
+                        help="ground truth in place of the network: each scene's center scores "
+                        "and a one-hot embedding per instance go through the same NMS and "
+                        "clustering, so FPCC's figures are the ceiling of --clustering on "
+                        "these scenes (the model is loaded for its card only)")
     add_pipeline_arguments(parser)
 
 
@@ -99,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
                           fixed_part_radius=args.part_radius is not None,
                           progress=lambda it: tqdm(it, desc="eval", unit="scene", file=sys.stderr),
                           warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr),
-                          columns=args.columns)
+                          columns=args.columns, oracle=args.oracle_embeddings)
     except (ModelLoadError, ConfigError, EvalError) as exc:
         return fail(str(exc))
 

@@ -1,0 +1,184 @@
+"""The connected clustering (clustering.connect_fragments, the pipeline's `connected` mode) and
+the oracle that measures its ceiling, on hand-made clouds whose answers are worked out by hand."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fpcc_ros.clustering import connect_fragments
+from fpcc_ros.dbscan import dbscan
+from fpcc_ros.evaluation import evaluate, f1_score
+from fpcc_ros.onnx_model import FpccModel
+from fpcc_ros.oracle import OraclePipeline, representative_truth
+from fpcc_ros.pipeline import ConfigError, Pipeline, PipelineConfig
+
+from test_evaluation import FLOOR, patch
+
+TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
+STEP = 0.1   # grid spacing of the hand-made parts
+EPS = 0.15   # DBSCAN eps: neighbours on the grid (0.1, diagonals 0.14) link, a 0.3 gap does not
+D_MAX = 0.8  # a 1 x 1 square (diagonal 1.41) fits in a part (2 d_max = 1.6); two side by side do not
+
+
+def square(x: float, y: float = 0.0, n: int = 11) -> np.ndarray:
+    """n x n grid points 0.1 apart, lower corner at (x, y), z = 0: 1.0 x 1.0 for n = 11."""
+    g = np.arange(n) * STEP
+    gx, gy = np.meshgrid(x + g, y + g, indexing="ij")
+    return np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+
+
+def fragments(xyz: np.ndarray) -> np.ndarray:
+    return dbscan(xyz, EPS, 1)
+
+
+def test_touching_parts_are_one_fragment_and_the_centers_split_them():
+    # two squares with their edges 0.1 apart: one fragment by connectivity alone
+    left, right = square(0.0), square(1.1)
+    xyz = np.vstack([left, right])
+    assert len(set(fragments(xyz))) == 1
+    # the centers' point-wise labels: 1 on the left square, 2 on the right, except three
+    # points on each side that the network got wrong (labelled 0 or the other center)
+    labels = np.r_[np.ones(len(left), int), np.full(len(right), 2)]
+    labels[[0, 1, 2]] = [0, 2, 0]
+    labels[[130, 131]] = [1, 0]
+    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 10)
+    # too big for one part (diagonal 2.33 > 1.6): split point by point between the claimants
+    assert set(out[labels == 1]) == {1} and set(out[labels == 2]) == {2}
+    assert (out[labels == 0] == 0).all()
+
+
+def test_a_part_cut_by_an_occluder_is_joined_through_its_center():
+    # one part (center 1) seen as two pieces 0.3 apart (an occluder lies across it), a second
+    # part (center 2) elsewhere; the network labelled only part of each piece
+    piece_a, piece_b = square(0.0, n=5), square(0.7, n=4)      # 0.4 and 0.3 wide: union 1.0
+    other = square(3.0, n=5)
+    xyz = np.vstack([piece_a, piece_b, other])
+    frag = fragments(xyz)
+    assert len(set(frag)) == 3
+    labels = np.r_[np.ones(len(piece_a), int), np.ones(len(piece_b), int), np.full(len(other), 2)]
+    labels[:10] = 0                                  # unlabelled points inside piece a
+    labels[len(piece_a):len(piece_a) + 8] = 0        # and inside piece b
+    out = connect_fragments(labels, frag, np.ones(len(xyz)), xyz, D_MAX, 10)
+    # each piece fits in a part and is claimed by center 1: both are its, whole
+    assert (out[:len(piece_a) + len(piece_b)] == 1).all()
+    assert (out[len(piece_a) + len(piece_b):] == 2).all()
+
+
+def test_a_fragment_without_a_center_is_kept_when_big_enough_else_dropped():
+    claimed = square(0.0, n=6)                   # 36 points, center 1
+    big = square(2.0, n=6)                       # 36 points, no center
+    small = square(4.0, n=3)                     # 9 points, no center
+    wall = np.c_[np.arange(40) * STEP, np.full(40, 6.0), np.zeros(40)]  # 3.9 long: no part
+    xyz = np.vstack([claimed, big, small, wall])
+    labels = np.r_[np.ones(len(claimed), int), np.zeros(len(big) + len(small) + len(wall), int)]
+    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 20)
+    a, b, c = len(claimed), len(claimed) + len(big), len(claimed) + len(big) + len(small)
+    assert (out[:a] == 1).all()
+    assert (out[a:b] == 2).all()                 # center labels 1..1, then the kept leftover
+    assert (out[b:c] == 0).all()                 # 9 < 20 points
+    assert (out[c:] == 0).all()                  # 40 points, but longer than 2 d_max
+    # counted in input points: the small square's 9 rows standing for 3 points each are 27
+    weights = np.ones(len(xyz))
+    weights[b:c] = 3
+    out = connect_fragments(labels, fragments(xyz), weights, xyz, D_MAX, 20)
+    assert (out[b:c] == 3).all()
+
+
+def test_a_stray_label_does_not_join_two_parts():
+    # center 1 owns square A; 3 of square B's 121 points carry its label too (under a fifth
+    # of B and of center 1's labels): B is not its piece but a part without a center
+    a, b = square(0.0), square(3.0)
+    xyz = np.vstack([a, b])
+    labels = np.r_[np.ones(len(a), int), np.zeros(len(b), int)]
+    labels[len(a):len(a) + 3] = 1
+    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 10)
+    assert (out[:len(a)] == 1).all() and (out[len(a):] == 2).all()
+
+
+def test_a_center_whose_pieces_do_not_fit_in_one_part_keeps_its_largest():
+    # center 1 claims two squares 3 apart (more than 2 d_max): it keeps the larger one, the
+    # other becomes an instance of its own
+    a, b = square(0.0, n=6), square(3.0, n=5)
+    xyz = np.vstack([a, b])
+    out = connect_fragments(np.ones(len(xyz), int), fragments(xyz), np.ones(len(xyz)), xyz,
+                            D_MAX, 10)
+    assert (out[:len(a)] == 1).all() and (out[len(a):] == 2).all()
+
+
+def test_no_fragments_or_no_centers():
+    xyz = square(0.0, n=4)
+    assert (connect_fragments(np.ones(16, int), np.zeros(16, int), np.ones(16), xyz, D_MAX, 1)
+            == 0).all()
+    assert (connect_fragments(np.zeros(16, int), np.ones(16, int), np.ones(16), xyz, D_MAX, 1)
+            == 1).all()
+
+
+def test_representative_truth_takes_the_majority_and_the_mean_score():
+    inverse = np.array([0, 0, 0, 1, 1, 2])
+    instance = np.array([4, 4, 0, 0, 7, 7])       # rep 1: a tie 0/7 goes to the smaller id
+    score = np.array([0.9, 0.6, 0.0, 0.2, 0.4, 1.0])
+    majority, mean = representative_truth(inverse, instance, score, 3)
+    assert majority.tolist() == [4, 0, 7]
+    assert np.allclose(mean, [0.5, 0.3, 1.0])
+
+
+def _scene(parts: list[np.ndarray], d_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, instance (1..K, floor 0) and DESIGN's center score around each part's middle."""
+    xyz = np.vstack(parts + [FLOOR]).astype(np.float32)
+    instance = np.concatenate([np.full(len(p), i + 1) for i, p in enumerate(parts)]
+                              + [np.zeros(len(FLOOR), int)])
+    score = np.zeros(len(xyz))
+    for i, p in enumerate(parts):
+        rows = instance == i + 1
+        mid = p.mean(axis=0)
+        score[rows] = np.clip(1 - (np.linalg.norm(xyz[rows] - mid, axis=1) / d_max) ** 2, 0, 1)
+    return xyz, instance, score
+
+
+@pytest.mark.parametrize("clustering", ["paper", "connected"])
+def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
+    # three 21 x 21 faces 25 mm apart above a floor; ground truth in place of the network
+    parts = [patch(x, 0.05, z, step=0.0025, size=0.05) for x, z in
+             ((0.0, 0.98), (0.075, 0.97), (0.15, 0.985))]
+    xyz, instance, score = _scene(parts, 0.05)
+    path = tmp_path / "scene.npz"
+    np.savez(path, points=xyz, instance=instance.astype(np.int32),
+             center_score=score.astype(np.float32), part_radius=np.float32(0.05))
+    model = FpccModel(TINY_MODEL, threads=1)
+    cfg = PipelineConfig.from_card(model.card, part_radius=0.05, clustering=clustering,
+                                   voxel_size=0.0, fragment_radius=0.1, fragment_density=1,
+                                   fragment_min_points=100, min_points=100)
+    report = evaluate([path], Pipeline(model, cfg), baseline=False, oracle=True)
+    counts = report.fpcc_totals("visible")
+    assert (counts.true_positives, counts.predictions, counts.ground_truths) == (3, 3, 3)
+    assert f1_score(counts) == 1.0
+    # the network itself is never run
+    labels = OraclePipeline(Pipeline(model, cfg), instance, score).segment(xyz).labels
+    assert len(set(labels[instance > 0])) == 3 and (labels[instance == 0] == 0).all()
+
+
+def test_clustering_settings_are_validated():
+    with pytest.raises(ConfigError, match="clustering"):
+        PipelineConfig(part_radius=0.05, clustering="dbscan").validate()
+    with pytest.raises(ConfigError, match="fragment_radius"):
+        PipelineConfig(part_radius=0.05, fragment_radius=0.0).validate()
+    with pytest.raises(ConfigError, match="fragment_density"):
+        PipelineConfig(part_radius=0.05, fragment_density=0).validate()
+
+
+def test_calibration_sweeps_fragment_settings_for_the_connected_clustering_only(tmp_path):
+    from fpcc_ros.calibrate import calibrate
+
+    parts = [patch(x, 0.05, 0.98, step=0.0025, size=0.05) for x in (0.0, 0.075)]
+    xyz, instance, score = _scene(parts, 0.05)
+    path = tmp_path / "scene.npz"
+    np.savez(path, points=xyz, instance=instance.astype(np.int32),
+             center_score=score.astype(np.float32), part_radius=np.float32(0.05))
+    rows = calibrate(FpccModel(TINY_MODEL, threads=1), [path], [0.3], [1.0], merges=[0.0],
+                     prototypes=[0.0], clusterings=["paper", "connected"],
+                     fragment_radii=[0.1, 0.2], fragment_densities=[1],
+                     fragment_min_points=[100])
+    modes = sorted((r.clustering, r.fragment_radius) for r in rows)
+    card = FpccModel(TINY_MODEL, threads=1).card
+    assert modes == [("connected", 0.1), ("connected", 0.2), ("paper", card.fragment_radius)]
+    assert all(r.counts.ground_truths == 2 for r in rows)
