@@ -1,5 +1,5 @@
-"""Choose a model's clustering defaults (score threshold θ, feature gate, screening factor γ)
-on validation scenes.
+"""Choose a model's clustering defaults (score threshold θ, feature gate, screening factor γ,
+the clustering mode and its fragment settings) on validation scenes.
 
 θ and the gate are properties of a trained network (how high its center scores reach, how tight
 its embeddings are), so they belong in its card, chosen on the trainer's own validation scenes
@@ -56,6 +56,15 @@ class _MemoPipeline(Pipeline):
             self._cache[key] = super()._network_points(xyz, clock)
         return self._cache[key]
 
+    def _fragments(self, xyz, valid_idx, inverse, floor_free, num_network_points, view_axis):
+        cfg = self.config
+        key = ("fragments", len(valid_idx), len(floor_free), cfg.effective_voxel_size,
+               cfg.fragment_radius, cfg.fragment_density, cfg.part_radius)
+        if key not in self._cache:
+            self._cache[key] = super()._fragments(xyz, valid_idx, inverse, floor_free,
+                                                  num_network_points, view_axis)
+        return self._cache[key]
+
     def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray):
         key = (xyz.shape, len(candidates), candidates[:64].tobytes(), float(xyz[:64].sum()))
         if key not in self._cache:
@@ -73,6 +82,10 @@ class CalibrationRow:
     center_prototype: float = 0.0
     voxel_factor: float = 0.1
     part_counts: dict[str, InstanceCounts] = field(default_factory=dict)
+    clustering: str = "paper"
+    fragment_radius: float = 0.06
+    fragment_density: int = 20
+    fragment_min_points: int = 200
 
     @property
     def f1(self) -> float:
@@ -99,20 +112,34 @@ class CalibrationRow:
 def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               gates: list[float], progress=None, screening_factors: list[float] | None = None,
               merges: list[float] | None = None, prototypes: list[float] | None = None,
-              voxel_factors: list[float] | None = None) -> list[CalibrationRow]:
+              voxel_factors: list[float] | None = None, clusterings: list[str] | None = None,
+              fragment_radii: list[float] | None = None,
+              fragment_densities: list[int] | None = None,
+              fragment_min_points: list[int] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, per part (the scenes'
     ``part_name``) and summed over ``scenes``;
-    ``screening_factors`` / ``merges`` / ``prototypes`` / ``voxel_factors`` None keep the
-    card's γ / center_merge / center_prototype / voxel_factor.
+    ``screening_factors`` / ``merges`` / ``prototypes`` / ``voxel_factors`` / ``clusterings``
+    / ``fragment_*`` None keep the card's γ / center_merge / center_prototype / voxel_factor /
+    clustering / fragment settings. The fragment settings are swept for the ``connected``
+    clustering only (``paper`` has none).
 
     Each voxel factor runs the network again on every scene (what it sees changes); the other
-    settings reuse its outputs."""
-    factors = screening_factors or [model.card.screening_factor]
-    merges = merges if merges is not None else [model.card.center_merge]
-    prototypes = prototypes if prototypes is not None else [model.card.center_prototype]
-    voxels = voxel_factors or [model.card.voxel_factor]
+    settings reuse its outputs, and the fragments are found once per fragment radius and
+    density."""
+    card = model.card
+    factors = screening_factors or [card.screening_factor]
+    merges = merges if merges is not None else [card.center_merge]
+    prototypes = prototypes if prototypes is not None else [card.center_prototype]
+    voxels = voxel_factors or [card.voxel_factor]
+    fragment_settings = {
+        "paper": [(card.fragment_radius, card.fragment_density, card.fragment_min_points)],
+        "connected": list(itertools.product(fragment_radii or [card.fragment_radius],
+                                            fragment_densities or [card.fragment_density],
+                                            fragment_min_points or [card.fragment_min_points]))}
+    modes = [(cl, *f) for cl in (clusterings or [card.clustering]) for f in fragment_settings[cl]]
     rows: dict[tuple, dict[str, InstanceCounts]] = {
-        key: {} for key in itertools.product(thresholds, gates, factors, merges, prototypes, voxels)}
+        key: {} for key in itertools.product(thresholds, gates, factors, merges, prototypes, voxels,
+                                             modes)}
     memo = _MemoModel(model)
     inputs: dict = {}
     for path in (progress(scenes) if progress else scenes):
@@ -127,22 +154,27 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         radius = float(scene["part_radius"])
         part = str(scene["part_name"]) if "part_name" in scene.files else ""
         for key in rows:
-            t, g, f, m, p, v = key
+            t, g, f, m, p, v, (cl, fr, fd, fm) = key
             cfg = PipelineConfig.from_card(model.card, part_radius=radius, score_threshold=t,
                                            feature_gate=g, screening_factor=f, center_merge=m,
-                                           center_prototype=p, voxel_factor=v)
+                                           center_prototype=p, voxel_factor=v, clustering=cl,
+                                           fragment_radius=fr, fragment_density=fd,
+                                           fragment_min_points=fm)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
             per_part = rows[key]
             per_part[part] = per_part.get(part, InstanceCounts()) + \
                 scene_counts(labels[finite], gt[finite], "visible", limit)
-    return [CalibrationRow(t, g, sum(parts.values(), InstanceCounts()), f, m, p, v, parts)
-            for (t, g, f, m, p, v), parts in rows.items()]
+    return [CalibrationRow(t, g, sum(parts.values(), InstanceCounts()), f, m, p, v, parts,
+                           *mode) for (t, g, f, m, p, v, mode), parts in rows.items()]
 
 
 # (row attribute, `fpcc calibrate` option) of each swept setting, in the order the CLI lists them
 SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates"),
                   ("screening_factor", "--screening"), ("center_merge", "--merges"),
-                  ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"))
+                  ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"),
+                  ("clustering", "--clusterings"), ("fragment_radius", "--fragment-radii"),
+                  ("fragment_density", "--fragment-densities"),
+                  ("fragment_min_points", "--fragment-min-points"))
 OFF_AT_ZERO = ("center_merge", "center_prototype")   # 0 = the step is off
 
 
@@ -157,7 +189,10 @@ def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow
     """
     edges = []
     for name, option in SWEPT_SETTINGS:
-        tried = sorted({getattr(r, name) for r in rows})
+        if name == "clustering" or (name.startswith("fragment_") and best.clustering != "connected"):
+            continue   # a choice, not a range; fragment settings only matter when connected
+        tried = sorted({getattr(r, name) for r in rows if not name.startswith("fragment_")
+                        or r.clustering == "connected"})
         value = getattr(best, name)
         if len(tried) < 2:
             continue

@@ -1,5 +1,5 @@
 """`fpcc calibrate`: choose a model's score threshold, feature gate, screening factor, center
-merge and center prototype on validation scenes (never on evaluation data) and, with --write,
+merge, center prototype and clustering mode (with its fragment settings) on validation scenes (never on evaluation data) and, with --write,
 store them in its card."""
 from __future__ import annotations
 
@@ -34,6 +34,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "card's only). Each runs the network again on every scene; a finer "
                         "voxel gives thin or elongated parts more points and costs time "
                         "(0.08 instead of 0.1: ~1.5x the points)")
+    parser.add_argument("--clusterings", nargs="+", choices=("paper", "connected"),
+                        default=["paper", "connected"],
+                        help="clustering modes to try (connected: geometric fragments decided "
+                        "by the centers; its fragment settings are swept below)")
+    parser.add_argument("--fragment-radii", type=float, nargs="+", default=[0.05, 0.06, 0.08],
+                        metavar="R", help="connected: DBSCAN eps values in part radii")
+    parser.add_argument("--fragment-densities", type=int, nargs="+", default=[5, 20],
+                        metavar="N", help="connected: DBSCAN min_samples values, input points")
+    parser.add_argument("--fragment-min-points", type=int, nargs="+", default=[200, 300],
+                        metavar="N", help="connected: smallest instance without a center, "
+                        "input points")
     parser.add_argument("--objective", choices=("part-mean", "pooled"), default="part-mean",
                         help="what the best combination maximises: the mean over parts of each "
                         "part's F1 (scenes grouped by their part_name; every part counts once), "
@@ -73,15 +84,20 @@ def run(args: argparse.Namespace) -> int:
         return 2
     rows = calibrate(model, scenes, args.thresholds, args.gates, progress=tqdm,
                      screening_factors=args.screening, merges=args.merges,
-                     prototypes=args.prototypes, voxel_factors=args.voxel_factors)
+                     prototypes=args.prototypes, voxel_factors=args.voxel_factors,
+                     clusterings=args.clusterings, fragment_radii=args.fragment_radii,
+                     fragment_densities=args.fragment_densities,
+                     fragment_min_points=args.fragment_min_points)
     rows.sort(key=lambda r: -r.score(args.objective))
     parts = len(rows[0].part_counts) or 1
     print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'voxel':>6} "
+          f"{'cluster':>9} {'frag':>5} {'dens':>4} {'fmin':>4} "
           f"{'P':>6} {'R':>6} {'F1':>6} {'partF1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
               f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.voxel_factor:>6.3f} "
-              f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
+              f"{r.clustering:>9} {r.fragment_radius:>5.3f} {r.fragment_density:>4} "
+              f"{r.fragment_min_points:>4} {r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
               f"{r.part_mean_f1:>6.3f}")
     best = rows[0]
     chosen = {name: getattr(best, name) for name, _ in SWEPT_SETTINGS}
