@@ -48,7 +48,7 @@ CROP_PARTS = 20               # the synth scene the crops are cut from
 CLUTTER_PARTS = (20, 30)      # "cluttered bin" in the goals
 # Stage names in pipeline order (fpcc_ros.pipeline and fpcc_ros.frame); "total" is end to end.
 STAGES = ("decode", "valid", "downsample", "floor", "features", "inference", "nms", "cluster",
-          "labels", "encode", "total")
+          "fragments", "labels", "encode", "total")   # fragments: the connected clustering's
 CAMERA_FIELDS = (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7))  # FLOAT32
 
 
@@ -606,7 +606,7 @@ class BenchReport:
     def markdown(self) -> str:
         """The per-scene table and the goals as Markdown (README / docs)."""
         stages = [s for s in ("decode", "valid", "downsample", "floor", "features", "inference",
-                              "nms", "cluster", "labels", "encode", "total")
+                              "nms", "cluster", "fragments", "labels", "encode", "total")
                   if any(s in r.stages_ms for r in self.scenes)]
         m = self.machine
         out = [f"Machine: {_cpu_label(m)}, {m.get('cpus')} CPUs; onnxruntime {m.get('onnxruntime')} "
