@@ -24,6 +24,8 @@ from visualization_msgs.msg import MarkerArray
 
 from msg_tools.msg_types import stamp_ns
 
+from fpcc_ros.node_shutdown import spin_until_stopped
+
 OUTPUT_TOPICS = {"segmented_points": PointCloud2, "instances": PoseArray,
                  "instance_markers": MarkerArray}
 
@@ -42,7 +44,9 @@ class NodeProcess:
     """The segmenter in a child process (``python -m fpcc_ros.segmenter --ros-args ...``)."""
 
     def __init__(self, ros_args: Iterable[str] = (), env: dict[str, str] | None = None,
-                 log_path: Path | None = None):
+                 log_path: Path | None = None, cwd: Path | None = None):
+        """``cwd``: the child's working directory (where a core dump lands with the kernel's
+        default core_pattern; scripts/soak_shutdown.py counts them there)."""
         self.cmd = [sys.executable, "-m", "fpcc_ros.segmenter", "--ros-args", *ros_args]
         self.env = env or isolated_ros_env()
         repo = str(Path(__file__).resolve().parent.parent)
@@ -50,11 +54,13 @@ class NodeProcess:
         # a crash in C code (rclpy, DDS, onnxruntime) leaves the Python stacks in the log
         self.env.setdefault("PYTHONFAULTHANDLER", "1")
         self.log_path = log_path
+        self.cwd = cwd
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> "NodeProcess":
         out = open(self.log_path, "w") if self.log_path else subprocess.DEVNULL
-        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                     cwd=self.cwd)
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -117,7 +123,9 @@ class CloudClient(Node):
                                      lambda msg, n=name: self._on_output(n, msg), out_qos)
         self._executor = SingleThreadedExecutor()
         self._executor.add_node(self)
-        self._spinner = threading.Thread(target=self._executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self._spinner = threading.Thread(target=spin_until_stopped, daemon=True,
+                                         args=(self._executor, self._stop.is_set))
         self._spinner.start()
 
     def _on_output(self, name: str, msg: Any) -> None:
@@ -159,6 +167,9 @@ class CloudClient(Node):
         return True
 
     def close(self) -> None:
+        """Stop spinning, wait for the spinning thread, then destroy (ros2/rclpy#663)."""
+        self._stop.set()
+        self._spinner.join(timeout=5.0)
         self._executor.shutdown()
         self.destroy_node()
 

@@ -29,13 +29,15 @@ import rclpy
 from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, DurabilityPolicy)
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -44,6 +46,7 @@ from msg_tools.point_cloud2 import CloudFormatError
 
 from fpcc_ros.frame import process_cloud
 from fpcc_ros.model_card import MAX_GLOBAL_STRIDE
+from fpcc_ros.node_shutdown import StopRequest, spin_until_stopped
 from fpcc_ros.node_diagnostics import (THRESHOLD_PARAMS, HealthReporter, ModelInfo, Reading,
                                        Thresholds)
 from fpcc_ros.onnx_model import FpccModel, ModelLoadError, default_model_path
@@ -158,8 +161,21 @@ class _WarnThrottle:
     def __init__(self, logger: Any, period_s: float = 5.0):
         self._logger, self._period = logger, period_s
         self._last: dict[str, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def close(self) -> None:
+        """No more warnings (shutdown: the worker must not log through a node being destroyed);
+        returns once a warning being written is out."""
+        with self._lock:
+            self._closed = True
 
     def warn(self, key: str, text: str) -> None:
+        with self._lock:
+            if not self._closed:
+                self._warn(key, text)
+
+    def _warn(self, key: str, text: str) -> None:
         now = time.monotonic()
         last, held = self._last.get(key, (-math.inf, 0))
         if now - last >= self._period:
@@ -194,6 +210,8 @@ class SegmenterNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._slot_lock = threading.Condition()
         self._newest: tuple[PointCloud2, float] | None = None
+        self._publish_gate = threading.Lock()   # held by the worker while it publishes
+        self._publishing = True                 # False once shutdown() closed the gate
         self._running = False
         self._worker: threading.Thread | None = None
         self._sub = None
@@ -365,11 +383,16 @@ class SegmenterNode(Node):
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the node
             self._frame_failed(exc)
             return
-        self._note_view_axis(msg.header.frame_id, out.result.view_axis, pipeline.config.view_axis)
-        self._pub_cloud.publish(out.cloud)
-        self._pub_instances.publish(out.instances)
-        self._pub_markers.publish(out.markers)
-        self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
+        with self._publish_gate:
+            if not self._publishing:   # shutdown() gave up waiting for this frame
+                self.stats.dropped_at_shutdown += 1
+                return
+            self._note_view_axis(msg.header.frame_id, out.result.view_axis,
+                                 pipeline.config.view_axis)
+            self._pub_cloud.publish(out.cloud)
+            self._pub_instances.publish(out.instances)
+            self._pub_markers.publish(out.markers)
+            self.stats.record(time.perf_counter() - received_at, out.result.num_instances)
 
     def _frame_failed(self, exc: Exception) -> None:
         self.stats.failed += 1
@@ -428,8 +451,48 @@ class SegmenterNode(Node):
         with self._slot_lock:
             self._running = False
             self._slot_lock.notify()
+        if self._worker is None:
+            return True
         self._worker.join(timeout=timeout_s)
         return not self._worker.is_alive()
+
+    def shutdown(self, timeout_s: float = 5.0, flush_s: float = 3.0) -> bool:
+        """Stop the node's own work, in the order that leaves no rclpy object in use by another
+        thread (issue 26); then destroy_node() is safe. Call it on the thread that spun the
+        node, after spinning stopped (no callback can run), with the context still valid.
+
+        The frame in flight is finished and published (up to ``timeout_s``); then the worker may
+        no longer publish or log (a frame still inside the network is counted as dropped when it
+        comes out), the outputs already published are waited for until matched reliable
+        subscribers acknowledged them (up to ``flush_s``: destroying a writer discards what it
+        has not delivered, which tore the last frame of a shutdown), and the subscription,
+        timers and output publishers are destroyed. False if a frame was still being processed.
+        A second call only reports whether the worker has finished.
+        """
+        if getattr(self, "_shut_down", False):
+            return self._worker is None or not self._worker.is_alive()
+        self._shut_down = True
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)   # no new frames reach the slot
+            self._sub = None
+        finished = self.stop_worker(timeout_s)
+        with self._publish_gate:
+            self._publishing = False
+        self._throttle.close()
+        deadline = time.monotonic() + flush_s
+        publishers = [p for p in (getattr(self, name, None) for name in
+                                  ("_pub_cloud", "_pub_instances", "_pub_markers")) if p]
+        unacked = [pub.topic_name for pub in publishers if not pub.wait_for_all_acked(
+            Duration(nanoseconds=int(max(0.0, deadline - time.monotonic()) * 1e9)))]
+        if unacked:
+            self.get_logger().warning(
+                f"outputs on {', '.join(unacked)} not acknowledged by every subscriber within "
+                f"{flush_s:g} s of shutdown; a subscriber may miss the last frame")
+        for timer in list(self.timers):
+            self.destroy_timer(timer)
+        for pub in publishers:
+            self.destroy_publisher(pub)
+        return finished
 
 
 class _Stats:
@@ -463,7 +526,10 @@ class _Stats:
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
+    # SIGINT/SIGTERM only set a flag (fpcc_ros.node_shutdown): rclpy's handlers would shut the
+    # context down from a thread of their own while this one tears down (issue 26).
+    stop = StopRequest().install()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = SegmenterNode()
     except (ModelLoadError, ConfigError, ParameterException) as exc:
@@ -474,17 +540,19 @@ def main(args: list[str] | None = None) -> int:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        spin_until_stopped(executor, lambda: stop.requested)
     finally:
         teardown(node, executor)
     return 0
 
 
 def teardown(node: SegmenterNode, executor: SingleThreadedExecutor) -> None:
-    """Stop the worker, log the totals, destroy the node and shut rclpy down (both mains)."""
-    finished = node.stop_worker()
+    """Stop the worker, log the totals, destroy the node and shut rclpy down (both mains).
+
+    On the thread that spun ``executor``, after it stopped: node.shutdown() (worker joined,
+    outputs acknowledged, entities destroyed), then the executor's own guard conditions, the
+    node, and last the context -- nothing else is inside rcl by then."""
+    finished = node.shutdown()
     totals = node.totals()
     executor.shutdown()
     node.destroy_node()

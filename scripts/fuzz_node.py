@@ -51,6 +51,7 @@ from sensor_msgs.msg import PointCloud2  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
 import cloud_factory as cf  # noqa: E402
+from fpcc_ros.node_shutdown import spin_until_stopped  # noqa: E402
 from fpcc_ros.replay import NodeProcess  # noqa: E402
 
 TINY_MODEL = REPO / "test" / "data" / "tiny_fpcc.onnx"
@@ -96,7 +97,9 @@ class Collector(Node):
                                      QoSProfile(depth=50, **reliable))
         self._executor = SingleThreadedExecutor(context=context)
         self._executor.add_node(self)
-        self._thread = threading.Thread(target=self._executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=spin_until_stopped, daemon=True,
+                                        args=(self._executor, self._stop.is_set))
         self._thread.start()
 
     def _on_output(self, name: str, msg: Any) -> None:
@@ -136,6 +139,9 @@ class Collector(Node):
             return set(self.arrivals)
 
     def close(self) -> None:
+        """Stop spinning, wait for the spinning thread, then destroy (ros2/rclpy#663)."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
         self._executor.shutdown()
         self.destroy_node()
 

@@ -22,6 +22,7 @@ from rclpy.parameter import Parameter
 
 import cloud_factory as cf
 from conftest import REPO, TEST_DATA
+from fpcc_ros.node_shutdown import spin_until_stopped
 from fpcc_ros.replay import NodeProcess, isolated_ros_env
 
 sys.path.insert(0, str(REPO / "scripts"))
@@ -138,7 +139,9 @@ class LiveNode:
         self.node._throttle._logger = _Recorder()
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=spin_until_stopped, daemon=True,
+                                       args=(self.executor, self._stop.is_set))
         self.thread.start()
         self.client = Collector(self.context)
         assert self.client.wait_connected(30)
@@ -155,9 +158,15 @@ class LiveNode:
         out = self.client.take(self.send(msg), timeout)
         return None if out is None else cf.check_output(msg, out, cf.Kind("x", True, None), roi=None)
 
+    def stop_spinning(self):
+        """The executor thread returns (node.shutdown()'s precondition, as in main())."""
+        self._stop.set()
+        self.thread.join(timeout=10)
+
     def close(self):
         self.client.close()
-        self.node.stop_worker()
+        self.stop_spinning()
+        self.node.shutdown()
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
