@@ -213,13 +213,17 @@ class BagWriter:
         if not parent.is_dir():
             raise BagError(f"cannot write {str(self.path)!r}: directory {str(parent)!r} does not exist")
         self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=parent))
-        # version 8: what ROS 2 Jazzy's rosbag2 writes; rosbags names the file <dir>.mcap.
-        self._writer = Writer(self._tmpdir / self.path.name, version=8, storage_plugin=StoragePlugin.MCAP)
-        if self.compress:  # STORAGE = MCAP chunk compression (zstd), transparent to every reader
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        # until __enter__ returns, __exit__ will not run: anything raised here (a failed open, a
+        # KeyboardInterrupt from SIGINT/SIGTERM) removes the temporary folder itself
         try:
+            # version 8: what ROS 2 Jazzy's rosbag2 writes; rosbags names the file <dir>.mcap.
+            self._writer = Writer(self._tmpdir / self.path.name, version=8,
+                                  storage_plugin=StoragePlugin.MCAP)
+            if self.compress:  # STORAGE = MCAP chunk compression (zstd), transparent to readers
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             self._writer.open()
-        except Exception:
+        except BaseException:
+            self._writer = None
             shutil.rmtree(self._tmpdir, ignore_errors=True)
             raise
         return self

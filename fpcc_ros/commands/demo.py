@@ -3,6 +3,9 @@
 Starts the segmenter node in its own process, replays the demo bag into it over DDS (one frame
 at a time, waiting for its outputs), records input and outputs to a new bag, prints a per-frame
 summary and writes a PNG per frame.
+
+SIGINT or SIGTERM stop it at any point: the node is stopped (SIGINT, then waited for), the
+recorded bag is either complete or absent (its temporary folder removed), exit 130 / 143.
 """
 from __future__ import annotations
 
@@ -27,7 +30,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from fpcc_ros.commands._interrupt import exit_code, interruptible
+
+    try:
+        with interruptible():
+            return _run(args)
+    except KeyboardInterrupt as exc:   # SIGINT or SIGTERM: the with blocks stopped the node
+        print(f"fpcc demo: interrupted ({exc or 'SIGINT'}); the node was stopped and no "
+              "partial bag was left", file=sys.stderr)
+        return exit_code(exc)
+
+
+def _run(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
     from msg_tools.bag import BagError, BagWriter
     from msg_tools.point_cloud2 import read_points, read_xyz
@@ -57,7 +73,9 @@ def run(args: argparse.Namespace) -> int:
         os.environ[key] = env[key]
     print(f"starting the segmenter node (ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}), "
           f"{len(clouds)} frames from {args.bag}")
-    rclpy.init()
+    # rclpy's own handlers would shut the context down from another thread under the client
+    # (see fpcc_ros.node_shutdown); interruptible() turns the signals into an exception instead
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     records = []
     with NodeProcess(ros_args, env=env, log_path=args.out / "node.log") as node:
         client = CloudClient(namespace="/fpcc_demo")

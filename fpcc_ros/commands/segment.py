@@ -3,6 +3,9 @@
 A rosbag2 directory in gives a bag out with the input topic plus `segmented_points`,
 `instances` and `instance_markers` -- one output of each per input message, same stamps.
 A file (NPZ / PLY / PCD / TXT) in gives an NPZ (or PLY) with labels and center scores.
+Outputs are written under a temporary name and renamed when complete: interrupted by SIGINT
+or SIGTERM, the command removes the temporary output and exits 130 / 143, so the output is
+either complete or absent, never half-written under its final name.
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fpcc_ros.commands._interrupt import exit_code, interruptible
 from fpcc_ros.commands._pipeline_options import add_pipeline_arguments, build_pipeline
 
 
@@ -36,13 +40,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc segment: input {args.input} does not exist", file=sys.stderr)
         return 2
     try:
-        pipeline = build_pipeline(args)
-        if args.input.is_dir() or args.input.suffix == ".mcap":
-            return _segment_bag(args, pipeline)
-        return _segment_file(args, pipeline)
+        with interruptible():
+            pipeline = build_pipeline(args)
+            if args.input.is_dir() or args.input.suffix == ".mcap":
+                return _segment_bag(args, pipeline)
+            return _segment_file(args, pipeline)
     except (ModelLoadError, ConfigError, BagError, CloudFormatError, ValueError, OSError) as exc:
         print(f"fpcc segment: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:   # SIGINT or SIGTERM: the temporary output is removed
+        print(f"fpcc segment: interrupted ({exc or 'SIGINT'}); no output written",
+              file=sys.stderr)
+        return exit_code(exc)
 
 
 def _segment_bag(args: argparse.Namespace, pipeline) -> int:
