@@ -61,7 +61,7 @@ class FpccModel:
         try:
             model_bytes, self.flush = flush_tiny_weights(self.path.read_bytes())
         except (OSError, ValueError) as exc:
-            raise ModelLoadError(f"model file {self.path} is not a readable ONNX model ({exc}); "
+            raise ModelLoadError(f"model file {self.path} is not a loadable ONNX model ({exc}); "
                                  "re-export it with `fpcc export`") from exc
         # dead channels (a weight row all ~0: the layer outputs a constant) mean a collapsed
         # network: slow for nothing and inaccurate; say so where users look (log, bench)
