@@ -61,7 +61,7 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
                    "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype",
-                   "label_smoothing", "view_axis", "global_stride")
+                   "label_smoothing", "view_axis", "global_stride", "clustering")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -139,6 +139,11 @@ PARAMS = (
            "auto = +z when the points sit in front of the frame's origin as a camera sees them, "
            "else -z. The network sees the cloud turned into the camera's view; outputs stay in "
            "the cloud's frame."),
+    _Param("clustering", ParameterType.PARAMETER_STRING,
+           "paper: every point to the nearest center in feature space (paper §3.2); connected: "
+           "geometric fragments (DBSCAN) of which each goes to the center its points agree on, "
+           "touching parts split by their centers, a fragment without a center its own instance "
+           "(fragment settings from the model card). Default: the model card's."),
     _Param("threads", ParameterType.PARAMETER_INTEGER,
            "onnxruntime intra-op threads (0 = onnxruntime's default: all cores).", 0, 256),
     _Param("max_input_age", ParameterType.PARAMETER_DOUBLE,
@@ -265,6 +270,7 @@ class SegmenterNode(Node):
             "label_smoothing": PipelineConfig.label_smoothing,
             "view_axis": PipelineConfig.view_axis,
             "global_stride": card.global_stride if card else 1,
+            "clustering": card.clustering if card else PipelineConfig.clustering,
             "threads": 0, "max_input_age": 0.0,
             **{t.name: t.default for t in THRESHOLD_PARAMS},
         }
