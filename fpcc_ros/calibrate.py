@@ -86,6 +86,7 @@ class CalibrationRow:
     fragment_radius: float = 0.06
     fragment_density: int = 20
     fragment_min_points: int = 200
+    fragment_join: float = 2.0
 
     @property
     def f1(self) -> float:
@@ -115,7 +116,8 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               voxel_factors: list[float] | None = None, clusterings: list[str] | None = None,
               fragment_radii: list[float] | None = None,
               fragment_densities: list[int] | None = None,
-              fragment_min_points: list[int] | None = None) -> list[CalibrationRow]:
+              fragment_min_points: list[int] | None = None,
+              fragment_joins: list[float] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, per part (the scenes'
     ``part_name``) and summed over ``scenes``;
     ``screening_factors`` / ``merges`` / ``prototypes`` / ``voxel_factors`` / ``clusterings``
@@ -132,10 +134,12 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
     prototypes = prototypes if prototypes is not None else [card.center_prototype]
     voxels = voxel_factors or [card.voxel_factor]
     fragment_settings = {
-        "paper": [(card.fragment_radius, card.fragment_density, card.fragment_min_points)],
+        "paper": [(card.fragment_radius, card.fragment_density, card.fragment_min_points,
+                   card.fragment_join)],
         "connected": list(itertools.product(fragment_radii or [card.fragment_radius],
                                             fragment_densities or [card.fragment_density],
-                                            fragment_min_points or [card.fragment_min_points]))}
+                                            fragment_min_points or [card.fragment_min_points],
+                                            fragment_joins or [card.fragment_join]))}
     modes = [(cl, *f) for cl in (clusterings or [card.clustering]) for f in fragment_settings[cl]]
     rows: dict[tuple, dict[str, InstanceCounts]] = {
         key: {} for key in itertools.product(thresholds, gates, factors, merges, prototypes, voxels,
@@ -154,12 +158,12 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         radius = float(scene["part_radius"])
         part = str(scene["part_name"]) if "part_name" in scene.files else ""
         for key in rows:
-            t, g, f, m, p, v, (cl, fr, fd, fm) = key
+            t, g, f, m, p, v, (cl, fr, fd, fm, fj) = key
             cfg = PipelineConfig.from_card(model.card, part_radius=radius, score_threshold=t,
                                            feature_gate=g, screening_factor=f, center_merge=m,
                                            center_prototype=p, voxel_factor=v, clustering=cl,
                                            fragment_radius=fr, fragment_density=fd,
-                                           fragment_min_points=fm)
+                                           fragment_min_points=fm, fragment_join=fj)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
             per_part = rows[key]
             per_part[part] = per_part.get(part, InstanceCounts()) + \
@@ -174,7 +178,8 @@ SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates
                   ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"),
                   ("clustering", "--clusterings"), ("fragment_radius", "--fragment-radii"),
                   ("fragment_density", "--fragment-densities"),
-                  ("fragment_min_points", "--fragment-min-points"))
+                  ("fragment_min_points", "--fragment-min-points"),
+                  ("fragment_join", "--fragment-joins"))
 OFF_AT_ZERO = ("center_merge", "center_prototype")   # 0 = the step is off
 
 

@@ -45,6 +45,7 @@ class ModelCard:
     fragment_radius: float = 0.06  # connected: DBSCAN eps in part radii
     fragment_density: int = 20     # connected: DBSCAN min_samples in input points
     fragment_min_points: int = 200  # connected: smallest instance without a center
+    fragment_join: float = 2.0     # connected: a center's pieces join within this diagonal (d_max)
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
     trained_on: dict[str, Any] = field(default_factory=dict)
@@ -153,6 +154,8 @@ def _check_values(card: ModelCard, path: Path) -> None:
         ("fragment_min_points", card.fragment_min_points,
          isinstance(card.fragment_min_points, int) and not isinstance(card.fragment_min_points, bool)
          and card.fragment_min_points >= 1, "an integer >= 1 (input points)"),
+        ("fragment_join", card.fragment_join,
+         _number(card.fragment_join) and 0 <= card.fragment_join <= 4, "between 0 and 4 part radii"),
         ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
          f"{list(FEATURE_NAMES)} (this runtime's features)"),
     ]

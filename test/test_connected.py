@@ -17,7 +17,8 @@ from test_evaluation import FLOOR, patch
 TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
 STEP = 0.1   # grid spacing of the hand-made parts
 EPS = 0.15   # DBSCAN eps: neighbours on the grid (0.1, diagonals 0.14) link, a 0.3 gap does not
-D_MAX = 0.8  # a 1 x 1 square (diagonal 1.41) fits in a part (2 d_max = 1.6); two side by side do not
+D_MAX = 0.8  # a 1 x 1 square (diagonal 1.41) fits in a part (2 d_max = 1.6); two side by side do
+#              not
 
 
 def square(x: float, y: float = 0.0, n: int = 11) -> np.ndarray:
@@ -50,14 +51,14 @@ def test_touching_parts_are_one_fragment_and_the_centers_split_them():
 def test_a_part_cut_by_an_occluder_is_joined_through_its_center():
     # one part (center 1) seen as two pieces 0.3 apart (an occluder lies across it), a second
     # part (center 2) elsewhere; the network labelled only part of each piece
-    piece_a, piece_b = square(0.0, n=5), square(0.7, n=4)      # 0.4 and 0.3 wide: union 1.0
-    other = square(3.0, n=5)
+    piece_a, piece_b = square(0.0, n=4), square(0.6, n=3)      # 0.3 and 0.2 wide, 0.3 apart:
+    other = square(3.0, n=5)                                   # union 0.8 x 0.3, diagonal 0.85
     xyz = np.vstack([piece_a, piece_b, other])
     frag = fragments(xyz)
     assert len(set(frag)) == 3
     labels = np.r_[np.ones(len(piece_a), int), np.ones(len(piece_b), int), np.full(len(other), 2)]
-    labels[:10] = 0                                  # unlabelled points inside piece a
-    labels[len(piece_a):len(piece_a) + 8] = 0        # and inside piece b
+    labels[:6] = 0                                   # unlabelled points inside piece a
+    labels[len(piece_a):len(piece_a) + 4] = 0        # and inside piece b
     out = connect_fragments(labels, frag, np.ones(len(xyz)), xyz, D_MAX, 10)
     # each piece fits in a part and is claimed by center 1: both are its, whole
     assert (out[:len(piece_a) + len(piece_b)] == 1).all()
@@ -103,6 +104,15 @@ def test_a_center_whose_pieces_do_not_fit_in_one_part_keeps_its_largest():
     out = connect_fragments(np.ones(len(xyz), int), fragments(xyz), np.ones(len(xyz)), xyz,
                             D_MAX, 10)
     assert (out[:len(a)] == 1).all() and (out[len(a):] == 2).all()
+    # pieces 0.5 apart (union 1.5 x 0.5, diagonal 1.58) join at the default 2 d_max (1.6), not
+    # at a tighter 1.2 d_max (0.96)
+    a, b = square(0.0, n=6), square(1.0, n=6)
+    xyz = np.vstack([a, b])
+    labels, frag, ones = np.ones(len(xyz), int), fragments(xyz), np.ones(len(xyz))
+    assert (connect_fragments(labels, frag, ones, xyz, D_MAX, 10) == 1).all()
+    tight = connect_fragments(labels, frag, ones, xyz, D_MAX, 10, join=1.2)
+    assert len(set(tight[:len(a)])) == 1 and len(set(tight[len(a):])) == 1
+    assert tight[0] != tight[-1] and min(tight) > 0
 
 
 def test_no_fragments_or_no_centers():
@@ -137,7 +147,8 @@ def _scene(parts: list[np.ndarray], d_max: float) -> tuple[np.ndarray, np.ndarra
 
 @pytest.mark.parametrize("clustering", ["paper", "connected"])
 def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
-    # three 21 x 21 faces 25 mm apart above a floor; ground truth in place of the network
+    # three 21 x 21 faces 25 mm apart above a floor; ground truth in place of the network.
+    # Fragments: eps 10 mm on 5 mm cells link a face's 2.5 mm grid, not the 25 mm gaps
     parts = [patch(x, 0.05, z, step=0.0025, size=0.05) for x, z in
              ((0.0, 0.98), (0.075, 0.97), (0.15, 0.985))]
     xyz, instance, score = _scene(parts, 0.05)
@@ -146,7 +157,7 @@ def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
              center_score=score.astype(np.float32), part_radius=np.float32(0.05))
     model = FpccModel(TINY_MODEL, threads=1)
     cfg = PipelineConfig.from_card(model.card, part_radius=0.05, clustering=clustering,
-                                   voxel_size=0.0, fragment_radius=0.1, fragment_density=1,
+                                   voxel_size=0.0, fragment_radius=0.2, fragment_density=1,
                                    fragment_min_points=100, min_points=100)
     report = evaluate([path], Pipeline(model, cfg), baseline=False, oracle=True)
     counts = report.fpcc_totals("visible")

@@ -40,6 +40,9 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                        help="connected: DBSCAN min_samples in input points")
     group.add_argument("--fragment-min-points", type=int, default=None,
                        help="connected: smallest instance without a center, input points")
+    group.add_argument("--fragment-join", type=float, default=None,
+                       help="connected: a center's fragments join within a box of this "
+                       "diagonal, part radii (2 = a whole part)")
     group.add_argument("--view-axis", default=None, choices=VIEW_AXES,
                        help="the direction the camera looks along in the cloud's frame: +z for a "
                        "camera optical frame (synth scenes), -z for a z-up world/base frame "
@@ -68,7 +71,7 @@ def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
              "roi_max", "view_axis", "global_stride", "clustering", "fragment_radius",
-             "fragment_density", "fragment_min_points")
+             "fragment_density", "fragment_min_points", "fragment_join")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 
