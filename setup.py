@@ -1,6 +1,6 @@
-"""ament_python package: `colcon build` installs the `segmenter` and `fpcc` executables into
-lib/fpcc_ros (where `ros2 run fpcc_ros segmenter` looks), the ament index marker, package.xml,
-the shipped models, config files and the demo bag into share/fpcc_ros."""
+"""ament_python package: `colcon build` installs the `segmenter`, `segmenter_managed` and `fpcc`
+executables into lib/fpcc_ros (where `ros2 run fpcc_ros segmenter` looks), the ament index
+marker, package.xml, the shipped models, config files and the demo bag into share/fpcc_ros."""
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -43,6 +43,7 @@ setup(
     entry_points={
         "console_scripts": [
             "segmenter = fpcc_ros.segmenter:main",
+            "segmenter_managed = fpcc_ros.managed_segmenter:main",   # the lifecycle variant
             "fpcc = fpcc_ros.cli:main",
         ],
     },

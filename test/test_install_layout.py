@@ -37,7 +37,7 @@ def installed(tmp_path_factory):
 
 
 def test_executables_where_ros2_run_looks(installed):
-    for exe in ("segmenter", "fpcc"):
+    for exe in ("segmenter", "segmenter_managed", "fpcc"):
         path = installed / "lib" / "fpcc_ros" / exe
         assert path.is_file() and os.access(path, os.X_OK), f"missing {path}"
 
@@ -72,3 +72,15 @@ def test_installed_package_finds_the_shipped_model_via_the_ament_index(installed
                             timeout=60, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert str(installed) in result.stdout
+
+
+def test_installed_managed_segmenter_imports_and_checks_its_parameters(installed, tmp_path):
+    """The lifecycle variant loads no model at start-up, so a bad parameter is what it refuses."""
+    site = next((installed / "lib").glob("python3*/site-packages"))
+    env = {**os.environ, "PYTHONPATH": str(site),
+           "AMENT_PREFIX_PATH": f"{installed}:{os.environ.get('AMENT_PREFIX_PATH', '')}"}
+    exe = installed / "lib" / "fpcc_ros" / "segmenter_managed"
+    result = subprocess.run([str(exe), "--ros-args", "-p", "stale_warn_fraction:=2.0"], env=env,
+                            capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "cannot start" in result.stderr and "stale_warn_fraction" in result.stderr

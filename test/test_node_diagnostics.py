@@ -8,7 +8,6 @@ import json
 import math
 import sys
 import threading
-import time
 
 import pytest
 import rclpy
@@ -20,7 +19,7 @@ from diagnostics_listener import DiagnosticsListener
 from fpcc_ros.node_diagnostics import (ERROR, OK, WARN, CounterWindow, ModelInfo, Reading,
                                        Thresholds, Window, evaluate, quantiles_ms)
 from fpcc_ros.replay import NodeProcess
-from test_node_faults import LiveNode, _set, scene
+from test_node_faults import LiveNode, _set, _wait, scene
 
 sys.path.insert(0, str(REPO / "scripts"))
 from fuzz_node import Collector, parse_totals  # noqa: E402
@@ -210,26 +209,15 @@ def test_diagnostics_count_the_clouds_sent_to_the_node_process(tmp_path):
     assert parse_totals(node.log())["received"] == 7
 
 
-def _hold_segment(live):
-    """Make the node's pipeline wait in segment() until the returned event is set."""
-    gate = threading.Event()
+def _before_segment(live, before):
+    """The node's pipeline calls ``before()`` ahead of every segment() (which may raise)."""
     real = live.node._pipeline.segment
 
-    def held(xyz):
-        gate.wait(120)
+    def wrapped(xyz):
+        before()
         return real(xyz)
 
-    live.node._pipeline.segment = held
-    return gate
-
-
-def _wait(predicate, timeout=60.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
+    live.node._pipeline.segment = wrapped
 
 
 @pytest.mark.ros
@@ -239,10 +227,11 @@ def test_stale_drops_turn_the_level_warn_and_the_threshold_is_a_runtime_paramete
     live = LiveNode(diagnostics_window=600.0, input_timeout=0.0)
     diag = DiagnosticsListener(live.context)
     try:
-        gate = _hold_segment(live)
+        gate = threading.Event()
+        _before_segment(live, lambda: gate.wait(120))   # the worker waits inside cloud 1
         for i in range(6):
             live.send(scene(i))   # one at a time: each must reach the node before the next
-            assert _wait(lambda: live.node.stats.received == i + 1)
+            assert _wait(lambda: live.node.stats.received == i + 1, timeout=60)
         seen = diag.wait_for(lambda s: s.count("received") == 6, 60)
         assert seen is not None, diag.last()
         assert (seen.count("dropped stale"), seen.count("published")) == (4, 0)
@@ -269,16 +258,13 @@ def test_a_failing_frame_turns_the_level_error_until_it_leaves_the_window():
     live = LiveNode(diagnostics_window=2.0, input_timeout=0.0)
     diag = DiagnosticsListener(live.context)
     try:
-        pipeline = live.node._pipeline
-        real, calls = pipeline.segment, []
+        faults = [RuntimeError("injected fault in frame 1")]
 
-        def segment_failing_once(xyz):
-            calls.append(1)
-            if len(calls) == 1:
-                raise RuntimeError("injected fault in frame 1")
-            return real(xyz)
+        def fail_once():
+            if faults:
+                raise faults.pop()
 
-        pipeline.segment = segment_failing_once
+        _before_segment(live, fail_once)
         live.send(scene())
         seen = diag.wait_for(lambda s: s.count("failed") == 1, 60)
         assert seen is not None, diag.last()
