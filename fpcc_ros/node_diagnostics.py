@@ -19,7 +19,6 @@ import numpy as np
 from fpcc_ros.model_card import card_path_for
 
 OK, WARN, ERROR = 0, 1, 2          # diagnostic_msgs/DiagnosticStatus levels
-LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
 COUNTERS = ("received", "published", "dropped_stale", "skipped_old", "invalid", "failed")
 PERIOD_S = 1.0                     # one DiagnosticArray a second, as diagnostic_updater does
 MAX_TEXT = 300                     # a hostile header's text must not bloat every status
@@ -52,9 +51,11 @@ THRESHOLD_PARAMS = (
 
 @dataclass(frozen=True)
 class Thresholds:
-    window_s: float = 5.0
-    stale_warn_fraction: float = 0.5
-    input_timeout_s: float = 10.0
+    """The values of THRESHOLD_PARAMS (defaults and ranges live there)."""
+
+    window_s: float
+    stale_warn_fraction: float
+    input_timeout_s: float
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any]) -> "Thresholds":
