@@ -59,7 +59,7 @@ class _MemoPipeline(Pipeline):
     def _fragments(self, xyz, valid_idx, inverse, floor_free, num_network_points, view_axis):
         cfg = self.config
         key = ("fragments", len(valid_idx), len(floor_free), cfg.effective_voxel_size,
-               cfg.fragment_radius, cfg.fragment_density, cfg.part_radius)
+               cfg.fragment_eps, cfg.fragment_density, cfg.part_radius)
         if key not in self._cache:
             self._cache[key] = super()._fragments(xyz, valid_idx, inverse, floor_free,
                                                   num_network_points, view_axis)
@@ -83,9 +83,9 @@ class CalibrationRow:
     voxel_factor: float = 0.1
     part_counts: dict[str, InstanceCounts] = field(default_factory=dict)
     clustering: str = "paper"
-    fragment_radius: float = 0.06
+    fragment_eps: float = 0.006
     fragment_density: int = 20
-    fragment_min_points: int = 200
+    fragment_min_points: int = 300
     fragment_join: float = 2.0
 
     @property
@@ -114,7 +114,7 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               gates: list[float], progress=None, screening_factors: list[float] | None = None,
               merges: list[float] | None = None, prototypes: list[float] | None = None,
               voxel_factors: list[float] | None = None, clusterings: list[str] | None = None,
-              fragment_radii: list[float] | None = None,
+              fragment_eps_values: list[float] | None = None,
               fragment_densities: list[int] | None = None,
               fragment_min_points: list[int] | None = None,
               fragment_joins: list[float] | None = None) -> list[CalibrationRow]:
@@ -134,9 +134,9 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
     prototypes = prototypes if prototypes is not None else [card.center_prototype]
     voxels = voxel_factors or [card.voxel_factor]
     fragment_settings = {
-        "paper": [(card.fragment_radius, card.fragment_density, card.fragment_min_points,
+        "paper": [(card.fragment_eps, card.fragment_density, card.fragment_min_points,
                    card.fragment_join)],
-        "connected": list(itertools.product(fragment_radii or [card.fragment_radius],
+        "connected": list(itertools.product(fragment_eps_values or [card.fragment_eps],
                                             fragment_densities or [card.fragment_density],
                                             fragment_min_points or [card.fragment_min_points],
                                             fragment_joins or [card.fragment_join]))}
@@ -162,7 +162,7 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
             cfg = PipelineConfig.from_card(model.card, part_radius=radius, score_threshold=t,
                                            feature_gate=g, screening_factor=f, center_merge=m,
                                            center_prototype=p, voxel_factor=v, clustering=cl,
-                                           fragment_radius=fr, fragment_density=fd,
+                                           fragment_eps=fr, fragment_density=fd,
                                            fragment_min_points=fm, fragment_join=fj)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
             per_part = rows[key]
@@ -176,7 +176,7 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
 SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates"),
                   ("screening_factor", "--screening"), ("center_merge", "--merges"),
                   ("center_prototype", "--prototypes"), ("voxel_factor", "--voxel-factors"),
-                  ("clustering", "--clusterings"), ("fragment_radius", "--fragment-radii"),
+                  ("clustering", "--clusterings"), ("fragment_eps", "--fragment-eps"),
                   ("fragment_density", "--fragment-densities"),
                   ("fragment_min_points", "--fragment-min-points"),
                   ("fragment_join", "--fragment-joins"))

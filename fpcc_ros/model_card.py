@@ -42,9 +42,9 @@ class ModelCard:
     global_stride: int = 1   # the global feature's max over every s-th point of a block (the
     #   graph's optional global_stride input, graph_rewrite.add_global_stride); 1 = all, exact
     clustering: str = "paper"   # one of CLUSTERINGS (PipelineConfig.clustering)
-    fragment_radius: float = 0.06  # connected: DBSCAN eps in part radii
+    fragment_eps: float = 0.006  # connected: DBSCAN eps in metres (sensor spacing, not part size)
     fragment_density: int = 20     # connected: DBSCAN min_samples in input points
-    fragment_min_points: int = 200  # connected: smallest instance without a center
+    fragment_min_points: int = 300  # connected: smallest instance, input points
     fragment_join: float = 2.0     # connected: a center's pieces join within this diagonal (d_max)
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
@@ -145,9 +145,9 @@ def _check_values(card: ModelCard, path: Path) -> None:
          f"an integer from 1 (every point) to {MAX_GLOBAL_STRIDE}"),
         ("clustering", card.clustering, card.clustering in CLUSTERINGS,
          f"one of {list(CLUSTERINGS)}"),
-        ("fragment_radius", card.fragment_radius,
-         _number(card.fragment_radius) and 0.01 <= card.fragment_radius <= 1.0,
-         "between 0.01 and 1 part radii"),
+        ("fragment_eps", card.fragment_eps,
+         _number(card.fragment_eps) and 1e-4 <= card.fragment_eps <= 1.0,
+         "a length in metres between 0.0001 and 1"),
         ("fragment_density", card.fragment_density,
          isinstance(card.fragment_density, int) and not isinstance(card.fragment_density, bool)
          and 1 <= card.fragment_density <= 10_000, "an integer from 1 to 10000 input points"),

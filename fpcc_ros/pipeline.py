@@ -57,10 +57,12 @@ class PipelineConfig:
     #   block (1 = all, exact; needs a model with the input, FpccModel.supports_global_stride)
     clustering: str = "paper"  # "paper": each point to its center (§3.2); "connected": the
     #   centers' labels decide per geometric fragment (clustering.connect_fragments)
-    fragment_radius: float = 0.06  # connected: DBSCAN eps, in part radii
+    fragment_eps: float = 0.006  # connected: DBSCAN eps in metres: the sensor's spacing and
+    #   the gaps between parts set it, not the part's size (6 mm was best for the 121 mm gear
+    #   shaft and for the 78 mm ring screw alike)
     fragment_density: int = 20     # connected: DBSCAN min_samples, in input points
-    fragment_min_points: int = 200  # connected: a fragment no center claims is an instance
-    #   from this many input points (DBSCAN's minimum cluster size)
+    fragment_min_points: int = 300  # connected: the smallest instance, input points (DBSCAN's
+    #   minimum cluster size; min_points when larger)
     fragment_join: float = 2.0     # connected: a center's fragments join when together within
     #   a box of this diagonal, in part radii (2 = a whole part)
     voxel_factor: float = 0.08
@@ -82,7 +84,7 @@ class PipelineConfig:
                    center_merge=card.center_merge, center_prototype=card.center_prototype,
                    global_stride=card.global_stride, voxel_factor=card.voxel_factor,
                    block_size=card.block_size, clustering=card.clustering,
-                   fragment_radius=card.fragment_radius, fragment_density=card.fragment_density,
+                   fragment_eps=card.fragment_eps, fragment_density=card.fragment_density,
                    fragment_min_points=card.fragment_min_points,
                    fragment_join=card.fragment_join)
         return base.replace(**overrides)
@@ -130,8 +132,8 @@ class PipelineConfig:
         need(self.clustering in CLUSTERINGS, "clustering",
              "'paper' (nearest center in feature space) or 'connected' (centers decide per "
              "geometric fragment)")
-        need(_finite(self.fragment_radius) and 0.01 <= self.fragment_radius <= 1.0,
-             "fragment_radius", "between 0.01 and 1 part radii (the card's voxel_factor is 0.1)")
+        need(_finite(self.fragment_eps) and 1e-4 <= self.fragment_eps <= 1.0,
+             "fragment_eps", "a length in metres between 0.0001 and 1 (DBSCAN's eps)")
         need(isinstance(self.fragment_density, int) and not isinstance(self.fragment_density, bool)
              and 1 <= self.fragment_density <= 10_000, "fragment_density",
              "an integer from 1 (connectivity alone) to 10000 input points")
@@ -328,7 +330,9 @@ class Pipeline:
         # 7. labels back to every input point; drop small instances; centroids
         labels = np.zeros(n, np.uint32)
         labels[valid_idx] = valid_labels
-        labels, counts = _drop_small_instances(labels, cfg.min_points)
+        smallest = cfg.min_points if cfg.clustering == "paper" else \
+            max(cfg.min_points, cfg.fragment_min_points)   # connected: DBSCAN's min cluster size
+        labels, counts = _drop_small_instances(labels, smallest)
         centroids = _centroids(xyz, labels, len(counts))
         center_score = np.zeros(n, np.float32)
         center_score[valid_idx] = score[inverse]
@@ -375,7 +379,7 @@ class Pipeline:
         eps (:func:`_fragment_points`) and their DBSCAN fragments. A method so that
         calibration can reuse them across the settings that do not change them."""
         cfg = self.config
-        eps = cfg.fragment_radius * cfg.part_radius
+        eps = cfg.fragment_eps
         rows, grid_inverse, grid_xyz, weights = _fragment_points(
             xyz, valid_idx, inverse, floor_free, num_network_points, view_axis,
             FRAGMENT_GRID * eps)

@@ -157,7 +157,7 @@ def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
              center_score=score.astype(np.float32), part_radius=np.float32(0.05))
     model = FpccModel(TINY_MODEL, threads=1)
     cfg = PipelineConfig.from_card(model.card, part_radius=0.05, clustering=clustering,
-                                   voxel_size=0.0, fragment_radius=0.2, fragment_density=1,
+                                   voxel_size=0.0, fragment_eps=0.01, fragment_density=1,
                                    fragment_min_points=100, min_points=100)
     report = evaluate([path], Pipeline(model, cfg), baseline=False, oracle=True)
     counts = report.fpcc_totals("visible")
@@ -171,8 +171,8 @@ def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
 def test_clustering_settings_are_validated():
     with pytest.raises(ConfigError, match="clustering"):
         PipelineConfig(part_radius=0.05, clustering="dbscan").validate()
-    with pytest.raises(ConfigError, match="fragment_radius"):
-        PipelineConfig(part_radius=0.05, fragment_radius=0.0).validate()
+    with pytest.raises(ConfigError, match="fragment_eps"):
+        PipelineConfig(part_radius=0.05, fragment_eps=0.0).validate()
     with pytest.raises(ConfigError, match="fragment_density"):
         PipelineConfig(part_radius=0.05, fragment_density=0).validate()
 
@@ -187,9 +187,9 @@ def test_calibration_sweeps_fragment_settings_for_the_connected_clustering_only(
              center_score=score.astype(np.float32), part_radius=np.float32(0.05))
     rows = calibrate(FpccModel(TINY_MODEL, threads=1), [path], [0.3], [1.0], merges=[0.0],
                      prototypes=[0.0], clusterings=["paper", "connected"],
-                     fragment_radii=[0.1, 0.2], fragment_densities=[1],
+                     fragment_eps_values=[0.005, 0.01], fragment_densities=[1],
                      fragment_min_points=[100])
-    modes = sorted((r.clustering, r.fragment_radius) for r in rows)
+    modes = sorted((r.clustering, r.fragment_eps) for r in rows)
     card = FpccModel(TINY_MODEL, threads=1).card
-    assert modes == [("connected", 0.1), ("connected", 0.2), ("paper", card.fragment_radius)]
+    assert modes == [("connected", 0.005), ("connected", 0.01), ("paper", card.fragment_eps)]
     assert all(r.counts.ground_truths == 2 for r in rows)

@@ -34,8 +34,8 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                        help="paper: every point to the nearest center in feature space (§3.2); "
                        "connected: geometric fragments (DBSCAN) decided by the centers' labels "
                        "(default: the model card's)")
-    group.add_argument("--fragment-radius", type=float, default=None,
-                       help="connected: DBSCAN eps in part radii")
+    group.add_argument("--fragment-eps", type=float, default=None,
+                       help="connected: DBSCAN eps in metres")
     group.add_argument("--fragment-density", type=int, default=None,
                        help="connected: DBSCAN min_samples in input points")
     group.add_argument("--fragment-min-points", type=int, default=None,
@@ -70,7 +70,7 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
-             "roi_max", "view_axis", "global_stride", "clustering", "fragment_radius",
+             "roi_max", "view_axis", "global_stride", "clustering", "fragment_eps",
              "fragment_density", "fragment_min_points", "fragment_join")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 

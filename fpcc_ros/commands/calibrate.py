@@ -34,21 +34,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "card's only). Each runs the network again on every scene; a finer "
                         "voxel gives thin or elongated parts more points and costs time "
                         "(0.08 instead of 0.1: ~1.5x the points)")
-    parser.add_argument("--clusterings", nargs="+", choices=("paper", "connected"),
-                        default=["paper", "connected"],
-                        help="clustering modes to try (connected: geometric fragments decided "
-                        "by the centers; its fragment settings are swept below)")
-    parser.add_argument("--fragment-radii", type=float, nargs="+", default=[0.05, 0.06, 0.08],
-                        metavar="R", help="connected: DBSCAN eps values in part radii")
-    parser.add_argument("--fragment-densities", type=int, nargs="+", default=[5, 20],
-                        metavar="N", help="connected: DBSCAN min_samples values, input points")
-    parser.add_argument("--fragment-min-points", type=int, nargs="+", default=[200, 300],
-                        metavar="N", help="connected: smallest instance without a center, "
-                        "input points")
-    parser.add_argument("--fragment-joins", type=float, nargs="+", default=[1.2, 2.0],
-                        metavar="J", help="connected: a center's fragments join when together "
-                        "within a box of this diagonal, part radii (2 = a whole part; the "
-                        "shipped network wants 1.2)")
+    # the clustering's own settings multiply the grid (972 network settings above): by default
+    # the card's mode and fragment settings are kept; give values to sweep them
+    parser.add_argument("--clusterings", nargs="+", choices=("paper", "connected"), default=None,
+                        help="clustering modes to try (default: the card's); connected: "
+                        "geometric fragments decided by the centers, with the fragment "
+                        "settings below")
+    parser.add_argument("--fragment-eps", dest="fragment_eps_values", type=float, nargs="+",
+                        default=None, metavar="M",
+                        help="connected: DBSCAN eps values in metres (default: the card's; the "
+                        "shipped network's best was 0.006 on both IPA parts, ground truth's 0.012)")
+    parser.add_argument("--fragment-densities", type=int, nargs="+", default=None, metavar="N",
+                        help="connected: DBSCAN min_samples values, input points")
+    parser.add_argument("--fragment-min-points", type=int, nargs="+", default=None, metavar="N",
+                        help="connected: smallest instance values, input points")
+    parser.add_argument("--fragment-joins", type=float, nargs="+", default=None, metavar="J",
+                        help="connected: a center's fragments join when together within a box "
+                        "of this diagonal, part radii (2 = a whole part; the shipped network "
+                        "wants 1.2)")
     parser.add_argument("--objective", choices=("part-mean", "pooled"), default="part-mean",
                         help="what the best combination maximises: the mean over parts of each "
                         "part's F1 (scenes grouped by their part_name; every part counts once), "
@@ -89,19 +92,19 @@ def run(args: argparse.Namespace) -> int:
     rows = calibrate(model, scenes, args.thresholds, args.gates, progress=tqdm,
                      screening_factors=args.screening, merges=args.merges,
                      prototypes=args.prototypes, voxel_factors=args.voxel_factors,
-                     clusterings=args.clusterings, fragment_radii=args.fragment_radii,
+                     clusterings=args.clusterings, fragment_eps_values=args.fragment_eps_values,
                      fragment_densities=args.fragment_densities,
                      fragment_min_points=args.fragment_min_points,
                      fragment_joins=args.fragment_joins)
     rows.sort(key=lambda r: -r.score(args.objective))
     parts = len(rows[0].part_counts) or 1
     print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'voxel':>6} "
-          f"{'cluster':>9} {'frag':>5} {'dens':>4} {'fmin':>4} {'join':>4} "
+          f"{'cluster':>9} {'eps mm':>6} {'dens':>4} {'fmin':>4} {'join':>4} "
           f"{'P':>6} {'R':>6} {'F1':>6} {'partF1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
               f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.voxel_factor:>6.3f} "
-              f"{r.clustering:>9} {r.fragment_radius:>5.3f} {r.fragment_density:>4} "
+              f"{r.clustering:>9} {r.fragment_eps * 1e3:>6.1f} {r.fragment_density:>4} "
               f"{r.fragment_min_points:>4} {r.fragment_join:>4.1f} {r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
               f"{r.part_mean_f1:>6.3f}")
     best = rows[0]
