@@ -115,8 +115,10 @@ class FpccModel:
         # left spinning they hold a core for ~25 ms after every run, which the kNN queries and
         # the node's DDS threads need on a 2-core machine.
         options.add_session_config_entry("session.force_spinning_stop", "1")
-        # denormal intermediate results (not only weights) flushed to zero by the CPU
-        options.add_session_config_entry("session.set_denormal_as_zero", "1")
+        # Not session.set_denormal_as_zero: it sets the calling thread's FTZ/DAZ flags for the
+        # rest of the process, and scipy's cKDTree query then crashed (SIGSEGV in the baseline's
+        # RANSAC after a pipeline run in the same process, 2026-12-03). Flushing the weights at
+        # load is what removes the 30x cost (issue 25: 560 -> 37 ms, the flag alone -> 300 ms).
         try:
             return ort.InferenceSession(model_bytes, sess_options=options, providers=providers)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types
