@@ -17,18 +17,13 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNodeMixin, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from fpcc_ros.node_diagnostics import Reading
-from fpcc_ros.node_shutdown import StopRequest, spin_until_stopped
 from fpcc_ros.onnx_model import ModelLoadError
 from fpcc_ros.pipeline import ConfigError
-from fpcc_ros.segmenter import NODE_NAME, SegmenterNode, teardown
+from fpcc_ros.segmenter import NODE_NAME, SegmenterNode, run_node
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 WORKER_STOP_S = 60.0   # deactivate waits this long for the frame in flight (a huge cloud)
@@ -108,22 +103,8 @@ class ManagedSegmenterNode(LifecycleNodeMixin, SegmenterNode):
 
 def main(args: list[str] | None = None) -> int:
     """As fpcc_ros.segmenter.main (signals only set a flag), and the process also ends once a
-    shutdown transition has finalized the node."""
-    stop = StopRequest().install()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = ManagedSegmenterNode()   # no model yet: that is configure's
-    except ParameterException as exc:
-        print(f"[{NODE_NAME}] cannot start: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        spin_until_stopped(executor, lambda: stop.requested or node.finalized)
-    finally:
-        teardown(node, executor)
-    return 0
+    shutdown transition has finalized the node. No model yet at start: that is configure's."""
+    return run_node(ManagedSegmenterNode, args, finished=lambda node: node.finalized)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import rclpy
@@ -532,12 +532,19 @@ class _Stats:
 
 
 def main(args: list[str] | None = None) -> int:
-    # SIGINT/SIGTERM only set a flag (fpcc_ros.node_shutdown): rclpy's handlers would shut the
-    # context down from a thread of their own while this one tears down (issue 26).
+    return run_node(SegmenterNode, args)
+
+
+def run_node(make_node: Callable[[], "SegmenterNode"], args: list[str] | None = None,
+             finished: Callable[["SegmenterNode"], bool] = lambda node: False) -> int:
+    """Start ``make_node()``, spin until a signal (or ``finished(node)``), tear down; the exit code.
+
+    SIGINT/SIGTERM only set a flag (fpcc_ros.node_shutdown): rclpy's handlers would shut the
+    context down from a thread of their own while this one tears down (issue 26)."""
     stop = StopRequest().install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
-        node = SegmenterNode()
+        node = make_node()
     except (ModelLoadError, ConfigError, ParameterException) as exc:
         # ParameterException: a -p value of the wrong type or out of its declared range
         print(f"[{NODE_NAME}] cannot start: {exc}", file=sys.stderr)
@@ -546,7 +553,7 @@ def main(args: list[str] | None = None) -> int:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        spin_until_stopped(executor, lambda: stop.requested)
+        spin_until_stopped(executor, lambda: stop.requested or finished(node))
     finally:
         teardown(node, executor)
     return 0
