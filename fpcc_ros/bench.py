@@ -511,6 +511,11 @@ class BenchReport:
         e2e = float(np.median([s.stat("total") for s in clutter])) if clutter else float("nan")
         goals.append(_goal("end to end, cluttered bin (20-30 parts), median", e2e, "ms", 200.0))
         goals.append(_goal("stretch: end to end, cluttered bin", e2e, "ms", 120.0))
+        piles = [s for s in self.scenes if s.stages_ms.get("fragments")]
+        if piles:   # the connected clustering's geometry, on the organized 640x480 camera piles
+            goals.append(_goal("connected clustering's fragment step, median over the piles",
+                               float(np.median([s.stat("fragments") for s in piles])), "ms",
+                               10.0))
         fast, full = self.totals(clutter), self.full_res_totals(clutter)
         if fast is not None and full is not None:
             worst = max(abs(fast.precision - full.precision), abs(fast.recall - full.recall))

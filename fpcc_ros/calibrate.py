@@ -56,13 +56,14 @@ class _MemoPipeline(Pipeline):
             self._cache[key] = super()._network_points(xyz, clock)
         return self._cache[key]
 
-    def _fragments(self, xyz, valid_idx, inverse, floor_free, num_network_points, view_axis):
+    def _fragments(self, xyz, valid_idx, inverse, floor_free, num_network_points, view_axis,
+                   image_shape=None):
         cfg = self.config
         key = ("fragments", len(valid_idx), len(floor_free), cfg.effective_voxel_size,
-               cfg.fragment_eps, cfg.fragment_density, cfg.part_radius)
+               cfg.fragment_eps, cfg.fragment_density, cfg.part_radius, image_shape)
         if key not in self._cache:
             self._cache[key] = super()._fragments(xyz, valid_idx, inverse, floor_free,
-                                                  num_network_points, view_axis)
+                                                  num_network_points, view_axis, image_shape)
         return self._cache[key]
 
     def _block_inputs(self, xyz: np.ndarray, candidates: np.ndarray):
@@ -164,7 +165,8 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
                                            center_prototype=p, voxel_factor=v, clustering=cl,
                                            fragment_eps=fr, fragment_density=fd,
                                            fragment_min_points=fm, fragment_join=fj)
-            labels = _MemoPipeline(memo, cfg, inputs).segment(xyz).labels
+            image = scene["points"].shape[:2] if scene["points"].ndim == 3 else None
+            labels = _MemoPipeline(memo, cfg, inputs).segment(xyz, image).labels
             per_part = rows[key]
             per_part[part] = per_part.get(part, InstanceCounts()) + \
                 scene_counts(labels[finite], gt[finite], "visible", limit)

@@ -349,7 +349,8 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
              progress: Callable[[Iterable], Iterable] | None = None,
              warn: Callable[[str], None] | None = None,
              columns: str | None = None, oracle: bool = False) -> EvalReport:
-    """Evaluate ``pipeline`` (anything with ``segment(xyz)`` and ``config``) and the baselines.
+    """Evaluate ``pipeline`` (anything with ``segment(xyz, image_shape)`` and ``config``) and
+    the baselines.
 
     ``oracle``: each scene's ground truth stands in for the network (fpcc_ros.oracle), so
     the FPCC figures are the ceiling of the pipeline's clustering on these scenes.
@@ -418,7 +419,7 @@ def _evaluate_scene(scene: Scene, pipeline, protocols: tuple[str, ...]) -> Scene
     limit = scene.visible_threshold
 
     t0 = time.perf_counter()
-    result = pipeline.segment(scene.xyz)
+    result = pipeline.segment(scene.xyz, scene.shape if len(scene.shape) == 2 else None)
     fpcc_ms = (time.perf_counter() - t0) * 1e3
 
     labels = np.asarray(result.labels)[finite]

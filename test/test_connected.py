@@ -193,3 +193,39 @@ def test_calibration_sweeps_fragment_settings_for_the_connected_clustering_only(
     card = FpccModel(TINY_MODEL, threads=1).card
     assert modes == [("connected", 0.005), ("connected", 0.01), ("paper", card.fragment_eps)]
     assert all(r.counts.ground_truths == 2 for r in rows)
+
+
+def test_the_oracle_on_an_organized_cloud_uses_pixel_fragments(monkeypatch):
+    # a 60 x 150 camera image, 2.5 mm pixels: a floor at 1 m and three 20 x 20 pixel faces
+    # 30 mm above it, 20 pixels apart; passed with its image shape, fragments come from pixel
+    # adjacency, and each face is one instance, the floor none
+    h, w, pitch = 60, 150, 0.0025
+    v, u = np.mgrid[0:h, 0:w]
+    depth = np.full((h, w), 1.0)
+    instance = np.zeros((h, w), int)
+    for i, left in enumerate((20, 60, 100)):
+        depth[20:40, left:left + 20] = 0.97
+        instance[20:40, left:left + 20] = i + 1
+    xyz = np.stack([u * pitch, v * pitch, depth], axis=-1).reshape(-1, 3).astype(np.float32)
+    instance = instance.reshape(-1)
+    score = np.zeros(len(xyz))
+    for i in (1, 2, 3):
+        rows = instance == i
+        mid = xyz[rows].mean(axis=0)
+        score[rows] = np.clip(1 - (np.linalg.norm(xyz[rows] - mid, axis=1) / 0.05) ** 2, 0, 1)
+    import fpcc_ros.pipeline as pipeline_module
+    calls = []
+    real = pipeline_module.pixel_fragments
+    monkeypatch.setattr(pipeline_module, "pixel_fragments",
+                        lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    model = FpccModel(TINY_MODEL, threads=1)
+    cfg = PipelineConfig.from_card(model.card, part_radius=0.05, clustering="connected",
+                                   voxel_size=0.0, fragment_eps=0.004, fragment_min_points=100,
+                                   min_points=100)
+    result = OraclePipeline(Pipeline(model, cfg), instance, score).segment(xyz, (h, w))
+    labels = result.labels
+    assert calls == [(h, w)]
+    assert len(set(labels[instance > 0])) == 3 and 0 not in set(labels[instance > 0])
+    for i in (1, 2, 3):
+        assert len(set(labels[instance == i])) == 1
+    assert (labels[instance == 0] == 0).all()

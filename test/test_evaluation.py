@@ -57,7 +57,7 @@ class GroundTruthPipeline:
         self.truths = truths
         self.calls: list[tuple[int, float]] = []  # (points, part_radius) per segment call
 
-    def segment(self, xyz: np.ndarray) -> SegmentationResult:
+    def segment(self, xyz: np.ndarray, image_shape=None) -> SegmentationResult:
         self.calls.append((len(xyz), self.config.part_radius))
         labels = next(t for t in self.truths if len(t) == len(xyz)).astype(np.uint32)
         k = int(labels.max())

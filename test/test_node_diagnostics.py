@@ -213,9 +213,9 @@ def _before_segment(live, before):
     """The node's pipeline calls ``before()`` ahead of every segment() (which may raise)."""
     real = live.node._pipeline.segment
 
-    def wrapped(xyz):
+    def wrapped(xyz, image_shape=None):
         before()
-        return real(xyz)
+        return real(xyz, image_shape)
 
     live.node._pipeline.segment = wrapped
 

@@ -199,11 +199,11 @@ def test_an_exception_in_one_frame_is_logged_and_the_next_frame_is_processed(liv
     real = pipeline.segment
     calls = []
 
-    def segment_failing_once(xyz):
+    def segment_failing_once(xyz, image_shape=None):
         calls.append(len(xyz))
         if len(calls) == 1:
             raise RuntimeError("injected fault in frame 1")
-        return real(xyz)
+        return real(xyz, image_shape)
 
     pipeline.segment = segment_failing_once
     assert live.segment(scene(), timeout=3.0) is None          # the failing frame: no output

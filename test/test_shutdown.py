@@ -79,10 +79,10 @@ def test_a_frame_given_up_at_shutdown_is_neither_published_nor_logged():
         entered, release = threading.Event(), threading.Event()
         real = node._pipeline.segment
 
-        def stuck(xyz):                                    # a frame that outlasts the timeout
+        def stuck(xyz, image_shape=None):                                    # a frame that outlasts the timeout
             entered.set()
             release.wait(20)
-            return real(xyz)
+            return real(xyz, image_shape)
 
         node._pipeline.segment = stuck
         stamp = live.send(scene())

@@ -112,7 +112,7 @@ def _segment_file(args: argparse.Namespace, pipeline) -> int:
         print(f"fpcc segment: {out} exists; use --force to overwrite", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    result = pipeline.segment(xyz.reshape(-1, 3))
+    result = pipeline.segment(xyz.reshape(-1, 3), tuple(shape) if len(shape) == 2 else None)
     labels = result.labels.reshape(shape)
     scores = result.center_score.reshape(shape)
     _print_table([(0, xyz.size // 3, result)])

@@ -1,0 +1,85 @@
+"""Geometric fragments for the connected clustering: the pieces connectivity alone separates.
+
+DBSCAN's semantics (a *core* point has enough neighbours within ``eps``; fragments are connected
+core points; a border point joins a core neighbour; the rest is noise), two ways:
+
+* :func:`pixel_fragments`, for an organized cloud (a camera's ``height x width`` image): two
+  neighbouring pixels (right, down) are *linked* when both are measured, off the floor and
+  within ``eps`` in 3D; between two measured but unlinked neighbours (a jump: an occlusion
+  edge, or a gap between parts) the deeper pixel is cut. A core pixel has a link and is not
+  cut, so no two adjacent core pixels are ever unlinked, and the fragments are the
+  4-connected components of the core mask: one ``scipy.ndimage.label`` over the image. On the
+  640x480 validation piles the step took ~10 ms where the KD-tree radius graph of
+  the grid DBSCAN took 60-100 ms (AMD EPYC, 2 cores, same run), at equal or better F1.
+* an unorganized cloud has no image: the pipeline runs :func:`fpcc_ros.dbscan.dbscan` on a
+  grid of half ``eps`` instead (``Pipeline._fragments``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+# neighbouring pixels link within this many eps: one surface's pixels lie farther apart than
+# the points in a DBSCAN ball (9 mm links vs the grid's 6 mm eps, 6 piles each, shipped model:
+# F1 0.565 gear shaft / 0.672 ring screw vs the grid's 0.541 / 0.671; at 6 mm 0.596 / 0.561)
+PIXEL_LINK = 1.5
+
+
+def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int, int],
+                    eps: float, depth_axis: int = 2, depth_sign: float = 1.0) -> np.ndarray:
+    """Fragment ids 1..K (0 = noise) of the points at flat pixel indices ``pixels`` of an
+    organized cloud ``xyz`` (``height * width`` rows, row-major, as PointCloud2 lays it out).
+
+    Pixels not in ``pixels`` (no return, outside the ROI, on the floor) link to nothing.
+    """
+    height, width = image_shape
+    member = np.zeros(height * width, bool)
+    member[pixels] = True
+    member = member.reshape(height, width)
+    planes = [np.asarray(xyz[:, axis], np.float32).reshape(height, width) for axis in range(3)]
+    limit = np.float32(eps) ** 2
+
+    def linked(before: tuple[slice, slice], after: tuple[slice, slice]) -> np.ndarray:
+        gap = sum((p[after] - p[before]) ** 2 for p in planes)
+        return member[before] & member[after] & (gap <= limit)   # NaN compares False
+
+    right = linked((slice(None), slice(0, -1)), (slice(None), slice(1, None)))
+    down = linked((slice(0, -1), slice(None)), (slice(1, None), slice(None)))
+    links = _count(right, down)
+    # at a jump between measured neighbours the deeper pixel is cut from the core: the
+    # nearer surface keeps its edge, and no two adjacent core pixels are ever unlinked
+    depth = planes[depth_axis] * np.float32(depth_sign)
+    cut = np.zeros((height, width), bool)
+    jump = member[:, :-1] & member[:, 1:] & ~right
+    deeper = depth[:, 1:] > depth[:, :-1]
+    cut[:, 1:] |= jump & deeper
+    cut[:, :-1] |= jump & ~deeper
+    jump = member[:-1] & member[1:] & ~down
+    deeper = depth[1:] > depth[:-1]
+    cut[1:] |= jump & deeper
+    cut[:-1] |= jump & ~deeper
+    core, _ = ndimage.label((links > 0) & ~cut)
+
+    # border pixels: the fragment of a linked core neighbour (right, left, down, up; a border
+    # pixel never passes its fragment on)
+    fragment = core.copy()
+    free = member & (core == 0)
+    for link, here, there in ((right, np.s_[:, :-1], np.s_[:, 1:]),
+                              (right, np.s_[:, 1:], np.s_[:, :-1]),
+                              (down, np.s_[:-1, :], np.s_[1:, :]),
+                              (down, np.s_[1:, :], np.s_[:-1, :])):
+        take = free[here] & link & (core[there] > 0)
+        fragment[here][take] = core[there][take]
+        free[here] &= ~take
+    return fragment.reshape(-1)[pixels]
+
+
+def _count(right: np.ndarray, down: np.ndarray) -> np.ndarray:
+    """Per pixel, how many of its four image neighbours a right/down pair mask marks."""
+    count = np.zeros((right.shape[0], down.shape[1]), np.uint8)
+    count[:, :-1] += right
+    count[:, 1:] += right
+    count[:-1] += down
+    count[1:] += down
+    return count

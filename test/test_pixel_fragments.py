@@ -1,0 +1,83 @@
+"""Fragments from pixel adjacency (fpcc_ros.fragments.pixel_fragments) on hand-made organized
+clouds: a camera at the origin looking along +z, 2 mm between pixels."""
+import numpy as np
+
+from fpcc_ros.fragments import pixel_fragments
+
+PITCH = 0.002
+EPS = 0.009
+
+
+def image(depth: np.ndarray) -> np.ndarray:
+    """An organized (H*W, 3) cloud with the given per-pixel depth (NaN = no return)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    xyz = np.stack([u * PITCH, v * PITCH, depth], axis=-1).astype(np.float32)
+    xyz[~np.isfinite(depth)] = np.nan
+    return xyz.reshape(-1, 3)
+
+
+def fragments(depth: np.ndarray) -> np.ndarray:
+    xyz = image(depth)
+    pixels = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    out = np.zeros(len(xyz), np.int64)
+    out[pixels] = pixel_fragments(xyz, pixels, depth.shape, EPS)
+    return out.reshape(depth.shape)
+
+
+def test_one_flat_patch_is_one_fragment():
+    labels = fragments(np.full((20, 30), 0.8))
+    assert set(np.unique(labels)) == {1}
+
+
+def test_depth_jump_splits_touching_surfaces_and_the_edge_stays_with_the_nearer():
+    depth = np.full((20, 30), 0.80)
+    depth[:, 15:] = 0.75            # the right half 50 mm nearer: two parts side by side
+    labels = fragments(depth)
+    left, right = labels[:, :15], labels[:, 15:]
+    assert len(np.unique(left)) == 1 and len(np.unique(right)) == 1
+    assert left[0, 0] != right[0, 0] and left[0, 0] > 0 and right[0, 0] > 0
+    # the deeper side's edge column is cut from the core but still joins its own surface
+    assert (labels[:, 14] == left[0, 0]).all()
+
+
+def test_an_occluder_cuts_a_part_in_two():
+    depth = np.full((20, 40), 0.80)   # a long part ...
+    depth[:, 18:22] = 0.70            # ... with a bar lying across it, 100 mm nearer
+    labels = fragments(depth)
+    a, bar, b = labels[5, 2], labels[5, 19], labels[5, 35]
+    assert len({a, bar, b}) == 3 and min(a, bar, b) > 0
+    assert (labels[:, :18] == a).all() and (labels[:, 22:] == b).all()
+
+
+def test_a_gap_of_missing_pixels_separates_and_a_lone_pixel_is_noise():
+    depth = np.full((20, 30), 0.80)
+    depth[:, 10:12] = np.nan          # no return between two patches
+    depth[0:3, 20:23] = np.nan
+    depth[1, 21] = 0.60               # one stray pixel, in a hole, far nearer: no neighbour
+    labels = fragments(depth)
+    assert labels[5, 0] != labels[5, 20] and labels[5, 0] > 0 and labels[5, 20] > 0
+    assert labels[1, 21] == 0
+
+
+def test_pixels_left_out_link_to_nothing():
+    depth = np.full((10, 30), 0.80)
+    xyz = image(depth)
+    keep = np.arange(10 * 30).reshape(10, 30)
+    pixels = np.concatenate([keep[:, :12].ravel(), keep[:, 14:].ravel()])  # columns 12-13 out
+    out = pixel_fragments(xyz, pixels, (10, 30), EPS)
+    left = out[pixels < 10 * 30][np.isin(pixels, keep[:, :12])]
+    right = out[np.isin(pixels, keep[:, 14:])]
+    assert len(np.unique(left)) == 1 and len(np.unique(right)) == 1
+    assert left[0] != right[0]
+
+
+def test_world_frame_depth_axis_picks_the_nearer_side():
+    depth = np.full((20, 30), 0.80)
+    depth[:, 15:] = 0.75
+    xyz = image(depth)
+    world = xyz * np.array([1.0, -1.0, -1.0], np.float32)   # a z-up frame, camera above: -z
+    pixels = np.arange(len(xyz))
+    labels = pixel_fragments(world, pixels, depth.shape, EPS, depth_axis=2,
+                             depth_sign=-1.0).reshape(depth.shape)
+    assert (labels[:, 14] == labels[0, 0]).all() and labels[0, 0] != labels[0, 20]
