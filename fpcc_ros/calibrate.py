@@ -157,6 +157,7 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         memo._cache.clear()
         inputs.clear()
         radius = float(scene["part_radius"])
+        image = scene["points"].shape[:2] if scene["points"].ndim == 3 else None
         part = str(scene["part_name"]) if "part_name" in scene.files else ""
         for key in rows:
             t, g, f, m, p, v, (cl, fr, fd, fm, fj) = key
@@ -165,7 +166,6 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
                                            center_prototype=p, voxel_factor=v, clustering=cl,
                                            fragment_eps=fr, fragment_density=fd,
                                            fragment_min_points=fm, fragment_join=fj)
-            image = scene["points"].shape[:2] if scene["points"].ndim == 3 else None
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz, image).labels
             per_part = rows[key]
             per_part[part] = per_part.get(part, InstanceCounts()) + \

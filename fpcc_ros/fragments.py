@@ -38,27 +38,16 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
     member[pixels] = True
     member = member.reshape(height, width)
     planes = [np.asarray(xyz[:, axis], np.float32).reshape(height, width) for axis in range(3)]
-    limit = np.float32(eps) ** 2
-
-    def linked(before: tuple[slice, slice], after: tuple[slice, slice]) -> np.ndarray:
-        gap = sum((p[after] - p[before]) ** 2 for p in planes)
-        return member[before] & member[after] & (gap <= limit)   # NaN compares False
-
-    right = linked((slice(None), slice(0, -1)), (slice(None), slice(1, None)))
-    down = linked((slice(0, -1), slice(None)), (slice(1, None), slice(None)))
-    links = _count(right, down)
-    # at a jump between measured neighbours the deeper pixel is cut from the core: the
-    # nearer surface keeps its edge, and no two adjacent core pixels are ever unlinked
     depth = planes[depth_axis] * np.float32(depth_sign)
+    limit = np.float32(eps) ** 2
+    # per direction (right, down): neighbours linked within eps; at a jump between measured
+    # neighbours the deeper pixel is cut from the core, so the nearer surface keeps its edge
+    # and no two adjacent core pixels are ever unlinked
     cut = np.zeros((height, width), bool)
-    jump = member[:, :-1] & member[:, 1:] & ~right
-    deeper = depth[:, 1:] > depth[:, :-1]
-    cut[:, 1:] |= jump & deeper
-    cut[:, :-1] |= jump & ~deeper
-    jump = member[:-1] & member[1:] & ~down
-    deeper = depth[1:] > depth[:-1]
-    cut[1:] |= jump & deeper
-    cut[:-1] |= jump & ~deeper
+    right, down = (_linked(planes, member, depth, limit, cut, before, after)
+                   for before, after in ((np.s_[:, :-1], np.s_[:, 1:]),
+                                         (np.s_[:-1, :], np.s_[1:, :])))
+    links = _count(right, down)
     core, _ = ndimage.label((links > 0) & ~cut)
 
     # border pixels: the fragment of a linked core neighbour (right, left, down, up; a border
@@ -73,6 +62,20 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
         fragment[here][take] = core[there][take]
         free[here] &= ~take
     return fragment.reshape(-1)[pixels]
+
+
+def _linked(planes: list[np.ndarray], member: np.ndarray, depth: np.ndarray, limit: np.float32,
+            cut: np.ndarray, before: tuple, after: tuple) -> np.ndarray:
+    """Pairs (``before``, ``after``: one pixel and its neighbour) linked within sqrt(limit);
+    marks the deeper pixel of each measured but unlinked pair in ``cut``."""
+    gap = sum((p[after] - p[before]) ** 2 for p in planes)
+    both = member[before] & member[after]
+    link = both & (gap <= limit)   # NaN compares False
+    jump = both & ~link
+    deeper = depth[after] > depth[before]
+    cut[after] |= jump & deeper
+    cut[before] |= jump & ~deeper
+    return link
 
 
 def _count(right: np.ndarray, down: np.ndarray) -> np.ndarray:

@@ -33,8 +33,7 @@ def process_cloud(msg: Any, pipeline: Pipeline, types: Any) -> FrameOutputs:
     xyz = read_xyz(msg)  # validates first: CloudFormatError names the problem
     t_decode = time.perf_counter()
 
-    organized = (int(msg.height), int(msg.width)) if int(msg.height) > 1 else None
-    result = pipeline.segment(xyz, organized)
+    result = pipeline.segment(xyz, (int(msg.height), int(msg.width)))  # height 1: no image
     t_segment = time.perf_counter()
 
     cloud = create_segmented_cloud(msg.header, xyz, result.labels, result.center_score,

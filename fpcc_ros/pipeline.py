@@ -23,7 +23,7 @@ from fpcc_ros.features import (balanced_blocks, block_features, block_knn_graphs
 from fpcc_ros.model_card import CLUSTERINGS, MAX_GLOBAL_STRIDE, ModelCard
 from fpcc_ros.nms import nms_centers
 from fpcc_ros.onnx_model import FpccModel
-from fpcc_ros.view import VIEW_AXES, detect_view_axis, to_camera
+from fpcc_ros.view import VIEW_AXES, depth_axis, detect_view_axis, to_camera
 
 AUTO_VOXEL = -1.0
 MAX_RANGE_M = 1.0e4  # coordinates beyond 10 km are sensor garbage: treated as no return
@@ -392,20 +392,16 @@ class Pipeline:
         them across the settings that do not change them."""
         cfg = self.config
         eps = cfg.fragment_eps
+        rows = _off_floor_rows(inverse, floor_free, num_network_points)
         if image_shape is not None and image_shape[0] > 1 and \
                 image_shape[0] * image_shape[1] == len(xyz):
-            off_floor = np.zeros(num_network_points, bool)
-            off_floor[floor_free] = True
-            rows = np.flatnonzero(off_floor[inverse])
             pixels = np.take(valid_idx, rows)
             fragment = pixel_fragments(xyz, pixels, image_shape, PIXEL_LINK * eps,
-                                       "xyz".index(view_axis[1]),
-                                       1.0 if view_axis[0] == "+" else -1.0)
+                                       *depth_axis(view_axis))
             return (rows, np.arange(len(rows)), np.take(xyz, pixels, axis=0), np.ones(len(rows)),
                     fragment)
-        rows, grid_inverse, grid_xyz, weights = _fragment_points(
-            xyz, valid_idx, inverse, floor_free, num_network_points, view_axis,
-            FRAGMENT_GRID * eps)
+        grid_inverse, grid_xyz, weights = _fragment_points(xyz, np.take(valid_idx, rows),
+                                                           view_axis, FRAGMENT_GRID * eps)
         fragment = dbscan(grid_xyz, eps, cfg.fragment_density, 1, weights)
         return rows, grid_inverse, grid_xyz, weights, fragment
 
@@ -446,20 +442,23 @@ class Pipeline:
                          neighbours=ext[knn[0, :len(core)]])
 
 
-def _fragment_points(xyz: np.ndarray, valid_idx: np.ndarray, inverse: np.ndarray,
-                     floor_free: np.ndarray, num_network_points: int, view_axis: str,
-                     cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The points the connected clustering's fragments are found on: the valid points off the
-    floor (``rows``, indices into the valid points) on a grid of ``cell`` metres, in the
-    camera's view like the network's points; each row's grid point (``grid_inverse``), the
-    grid points and the input points each stands for."""
+def _off_floor_rows(inverse: np.ndarray, floor_free: np.ndarray, num_network_points: int
+                    ) -> np.ndarray:
+    """The valid points (indices into them) whose voxel representative is off the floor."""
     off_floor = np.zeros(num_network_points, bool)
     off_floor[floor_free] = True
-    rows = np.flatnonzero(off_floor[inverse])
-    pts = np.take(xyz, np.take(valid_idx, rows), axis=0).astype(np.float64)
+    return np.flatnonzero(off_floor[inverse])
+
+
+def _fragment_points(xyz: np.ndarray, points: np.ndarray, view_axis: str, cell: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unorganized cloud's fragment units: the input ``points`` (indices into ``xyz``) on
+    a grid of ``cell`` metres, in the camera's view like the network's points; each point's
+    grid point (``grid_inverse``), the grid points and the input points each stands for."""
+    pts = np.take(xyz, points, axis=0).astype(np.float64)
     keep, grid_inverse = voxel_downsample(pts, cell)
     grid_xyz = to_camera(np.take(pts, keep, axis=0), view_axis)
-    return rows, grid_inverse, grid_xyz, np.bincount(grid_inverse, minlength=len(keep))
+    return grid_inverse, grid_xyz, np.bincount(grid_inverse, minlength=len(keep))
 
 
 def _blocks(xyz: np.ndarray, cfg: PipelineConfig) -> list[np.ndarray]:

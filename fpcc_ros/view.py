@@ -44,6 +44,12 @@ def to_camera(xyz: np.ndarray, view_axis: str) -> np.ndarray:
     return xyz @ _TO_CAMERA[view_axis].T
 
 
+def depth_axis(view_axis: str) -> tuple[int, float]:
+    """The column of the cloud and the sign that give depth (distance along the view) for
+    ``view_axis`` (not ``auto``): ``-z`` -> (2, -1.0)."""
+    return "xyz".index(view_axis[1]), (1.0 if view_axis[0] == "+" else -1.0)
+
+
 def detect_view_axis(xyz: np.ndarray) -> str:
     """``+z`` when the finite points of ``xyz`` (N, 3) could all be seen from the frame's
     origin looking along +z (in front of it, inside a 127 degree cone), else ``-z`` (see the
