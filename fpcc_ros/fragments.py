@@ -37,7 +37,9 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
     member = np.zeros(height * width, bool)
     member[pixels] = True
     member = member.reshape(height, width)
-    planes = [np.asarray(xyz[:, axis], np.float32).reshape(height, width) for axis in range(3)]
+    # x, y, z as contiguous planes: the neighbour differences then run over contiguous rows
+    # (1.6 ms for the right neighbours from the strided columns, 0.7 ms from planes)
+    planes = np.ascontiguousarray(np.asarray(xyz, np.float32).T).reshape(3, height, width)
     depth = planes[depth_axis] * np.float32(depth_sign)
     limit = np.float32(eps) ** 2
     # per direction (right, down): neighbours linked within eps; at a jump between measured
@@ -47,30 +49,31 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
     right, down = (_linked(planes, member, depth, limit, cut, before, after)
                    for before, after in ((np.s_[:, :-1], np.s_[:, 1:]),
                                          (np.s_[:-1, :], np.s_[1:, :])))
-    links = _count(right, down)
-    core, _ = ndimage.label((links > 0) & ~cut)
-
-    # border pixels: the fragment of a linked core neighbour (right, left, down, up; a border
-    # pixel never passes its fragment on)
-    fragment = core.copy()
-    free = member & (core == 0)
-    for link, here, there in ((right, np.s_[:, :-1], np.s_[:, 1:]),
-                              (right, np.s_[:, 1:], np.s_[:, :-1]),
-                              (down, np.s_[:-1, :], np.s_[1:, :]),
-                              (down, np.s_[1:, :], np.s_[:-1, :])):
-        take = free[here] & link & (core[there] > 0)
-        fragment[here][take] = core[there][take]
-        free[here] &= ~take
-    return fragment.reshape(-1)[pixels]
+    linked = np.zeros((height, width), bool)
+    linked[:, :-1] |= right
+    linked[:, 1:] |= right
+    linked[:-1] |= down
+    linked[1:] |= down
+    core, _ = ndimage.label(linked & ~cut)
+    fragment = core.reshape(-1)
+    # border pixels (linked, but cut at a jump): the fragment of a linked core neighbour
+    border = np.flatnonzero(linked & cut)
+    fragment[border] = _border_fragments(fragment, right, down, border, width)
+    return fragment[pixels]
 
 
-def _linked(planes: list[np.ndarray], member: np.ndarray, depth: np.ndarray, limit: np.float32,
+def _linked(planes: np.ndarray, member: np.ndarray, depth: np.ndarray, limit: np.float32,
             cut: np.ndarray, before: tuple, after: tuple) -> np.ndarray:
     """Pairs (``before``, ``after``: one pixel and its neighbour) linked within sqrt(limit);
     marks the deeper pixel of each measured but unlinked pair in ``cut``."""
-    gap = sum((p[after] - p[before]) ** 2 for p in planes)
+    gap = np.zeros(member[before].shape, np.float32)
+    for plane in planes:
+        step = plane[after] - plane[before]
+        step *= step
+        gap += step
     both = member[before] & member[after]
-    link = both & (gap <= limit)   # NaN compares False
+    link = gap <= limit   # NaN compares False
+    link &= both
     jump = both & ~link
     deeper = depth[after] > depth[before]
     cut[after] |= jump & deeper
@@ -78,11 +81,23 @@ def _linked(planes: list[np.ndarray], member: np.ndarray, depth: np.ndarray, lim
     return link
 
 
-def _count(right: np.ndarray, down: np.ndarray) -> np.ndarray:
-    """Per pixel, how many of its four image neighbours a right/down pair mask marks."""
-    count = np.zeros((right.shape[0], down.shape[1]), np.uint8)
-    count[:, :-1] += right
-    count[:, 1:] += right
-    count[:-1] += down
-    count[1:] += down
-    return count
+def _border_fragments(core: np.ndarray, right: np.ndarray, down: np.ndarray,
+                      border: np.ndarray, width: int) -> np.ndarray:
+    """Per border pixel (flat indices), the core fragment of its first linked core neighbour
+    in the order right, left, down, up (0 when none); ``core``: the flat core labels, so a
+    border pixel never passes its fragment on. Over the few thousand border pixels only."""
+    height = len(core) // width
+    row, col = np.divmod(border, width)
+    right_link, down_link = right.reshape(-1), down.reshape(-1)
+    got = np.zeros(len(border), core.dtype)
+    # (neighbour there, index of the link between them in right / down, neighbour offset)
+    for there, links, link_at, offset in (
+            (col < width - 1, right_link, lambda i: row[i] * (width - 1) + col[i], 1),
+            (col > 0, right_link, lambda i: row[i] * (width - 1) + col[i] - 1, -1),
+            (row < height - 1, down_link, lambda i: border[i], width),
+            (row > 0, down_link, lambda i: border[i] - width, -width)):
+        rows = np.flatnonzero(there & (got == 0))
+        rows = rows[links[link_at(rows)]]
+        label = core[border[rows] + offset]
+        got[rows] = label
+    return got

@@ -61,7 +61,8 @@ class PipelineConfig:
     fragment_eps: float = 0.006  # connected: DBSCAN eps in metres: the sensor's spacing and
     #   the gaps between parts set it, not the part's size (6 mm was best for the 121 mm gear
     #   shaft and for the 78 mm ring screw alike)
-    fragment_density: int = 20     # connected: DBSCAN min_samples, in input points
+    fragment_density: int = 20     # connected, unorganized clouds only: DBSCAN min_samples, in
+    #   input points (pixel fragments need none: README "Two clusterings")
     fragment_min_points: int = 300  # connected: the smallest instance, input points (DBSCAN's
     #   minimum cluster size; min_points when larger)
     fragment_join: float = 2.0     # connected: a center's fragments join when together within
