@@ -348,12 +348,13 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
              fixed_part_radius: bool = False,
              progress: Callable[[Iterable], Iterable] | None = None,
              warn: Callable[[str], None] | None = None,
-             columns: str | None = None, oracle: bool = False) -> EvalReport:
+             columns: str | None = None, oracle: tuple[str, ...] = ()) -> EvalReport:
     """Evaluate ``pipeline`` (anything with ``segment(xyz, image_shape)`` and ``config``) and
     the baselines.
 
-    ``oracle``: each scene's ground truth stands in for the network (fpcc_ros.oracle), so
-    the FPCC figures are the ceiling of the pipeline's clustering on these scenes.
+    ``oracle``: the network outputs (fpcc_ros.oracle.ORACLE_HEADS) each scene's ground truth
+    stands in for: both, and the FPCC figures are the ceiling of the pipeline's clustering on
+    these scenes; one, and they say how far a perfect head of that kind would take the model.
 
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
     ``columns`` names the columns of .txt scenes (see :func:`load_scene`).
@@ -386,8 +387,10 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
                         model=_model_info(pipeline), config=_config_info(pipeline.config),
                         part_radius_source="fixed" if fixed_part_radius else "scene")
     if oracle:
-        from fpcc_ros.oracle import oracle_for_scene
-        report.model["oracle_embeddings"] = "ground truth in place of the network"
+        from fpcc_ros.oracle import ORACLE_HEADS, oracle_for_scene
+        report.model["oracle"] = "ground truth in place of the network" \
+            if set(oracle) == set(ORACLE_HEADS) else \
+            f"ground truth in place of the network's {' and '.join(oracle)}"
     tuner = _Tuner(report, tune_scenes) if grid is not None else None
     for path in (progress or (lambda it: it))(paths):
         scene = load_scene(path, columns)
@@ -399,7 +402,7 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
             continue
         scene_pipeline = _with_part_radius(pipeline, radii[path], path)
         report.scenes.append(_evaluate_scene(
-            scene, oracle_for_scene(scene_pipeline, path) if oracle else scene_pipeline,
+            scene, oracle_for_scene(scene_pipeline, path, oracle) if oracle else scene_pipeline,
             protocols))
         if tuner is not None:
             tuner.add(report.scenes[-1], _BaselineInput.of(scene, scene_pipeline.config,

@@ -8,8 +8,9 @@ import pytest
 from fpcc_ros.clustering import connect_fragments
 from fpcc_ros.dbscan import dbscan
 from fpcc_ros.evaluation import evaluate, f1_score
+from fpcc_ros.model_card import ModelCard
 from fpcc_ros.onnx_model import FpccModel
-from fpcc_ros.oracle import OraclePipeline, representative_truth
+from fpcc_ros.oracle import ORACLE_HEADS, OraclePipeline, representative_truth
 from fpcc_ros.pipeline import ConfigError, Pipeline, PipelineConfig
 
 from test_evaluation import FLOOR, patch
@@ -159,7 +160,7 @@ def test_the_oracle_segments_separate_parts_perfectly(tmp_path, clustering):
     cfg = PipelineConfig.from_card(model.card, part_radius=0.05, clustering=clustering,
                                    voxel_size=0.0, fragment_eps=0.01, fragment_density=1,
                                    fragment_min_points=100, min_points=100)
-    report = evaluate([path], Pipeline(model, cfg), baseline=False, oracle=True)
+    report = evaluate([path], Pipeline(model, cfg), baseline=False, oracle=ORACLE_HEADS)
     counts = report.fpcc_totals("visible")
     assert (counts.true_positives, counts.predictions, counts.ground_truths) == (3, 3, 3)
     assert f1_score(counts) == 1.0
@@ -229,3 +230,60 @@ def test_the_oracle_on_an_organized_cloud_uses_pixel_fragments(monkeypatch):
     for i in (1, 2, 3):
         assert len(set(labels[instance == i])) == 1
     assert (labels[instance == 0] == 0).all()
+
+
+class _FaceNetwork:
+    """Stands in for FPCC-Net on the three faces of :func:`_three_faces`: it finds a center on
+    the first face only (score 0.9 within 10 mm of its middle, 0 elsewhere), and embeds every
+    point at the origin except the third face's outer points (farther than 10 mm from its
+    middle), which it puts 3 away: beyond a feature gate of 1 from any center."""
+
+    def __init__(self, middles: np.ndarray, origin: np.ndarray):
+        self.card = ModelCard(name="faces", k=8, part_radius=0.05, block_size=4096)
+        self.middles, self.origin = middles, origin
+
+    def run(self, features: np.ndarray, knn: np.ndarray, global_stride: int = 1):
+        xyz = features[0, :, :3].astype(np.float64) * 0.05 + self.origin
+        near = np.linalg.norm(xyz[:, None] - self.middles[None], axis=2) <= 0.01
+        score = np.where(near[:, 0], 0.9, 0.0).astype(np.float32)
+        embedding = np.zeros((len(xyz), 8), np.float32)
+        third = np.linalg.norm(xyz[:, :2] - self.middles[2, :2], axis=1) <= 0.03
+        embedding[third & ~near[:, 2], 0] = 3.0
+        return embedding[None], score[None]
+
+
+def _three_faces() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Three 50 mm faces 100 mm apart (farther than d_max 0.05 from each other's middles), no
+    floor; points, instance 1..3, DESIGN's center score, the faces' middles."""
+    parts = [patch(x, 0.05, 0.98, step=0.0025, size=0.05) for x in (0.0, 0.15, 0.30)]
+    xyz = np.vstack(parts).astype(np.float32)
+    instance = np.concatenate([np.full(len(p), i + 1) for i, p in enumerate(parts)])
+    middles = np.array([p.mean(axis=0) for p in parts])
+    dist = np.linalg.norm(xyz - middles[instance - 1], axis=1)
+    return xyz, instance, np.clip(1 - (dist / 0.05) ** 2, 0, 1), middles
+
+
+@pytest.mark.parametrize("heads, labelled_faces, whole_faces", [
+    (("center_score", "embedding"), {1, 2, 3}, {1, 2, 3}),   # ground truth for both
+    (("embedding",), {1}, {1}),          # the network's centers: the first face only
+    (("center_score",), {1, 2, 3}, {1, 2}),  # its embeddings: the third face's rim is cut off
+])
+def test_the_oracle_replaces_only_the_heads_it_is_given(heads, labelled_faces, whole_faces):
+    xyz, instance, score, middles = _three_faces()
+    network = _FaceNetwork(middles, xyz.min(axis=0).astype(np.float64))
+    cfg = PipelineConfig(part_radius=0.05, voxel_size=0.0, remove_floor=False, min_points=1,
+                         score_threshold=0.5, screening_factor=1.0, feature_gate=1.0,
+                         label_smoothing=0, block_size=4096)
+    labels = OraclePipeline(Pipeline(network, cfg), instance, score, heads).segment(xyz).labels
+    assert {f for f in (1, 2, 3) if (labels[instance == f] > 0).any()} == labelled_faces
+    assert {f for f in (1, 2, 3) if (labels[instance == f] > 0).all()} == whole_faces
+    for face in labelled_faces:   # never one instance across two faces
+        assert len(set(labels[instance == face]) - {0}) == 1
+
+
+def test_oracle_heads_are_checked():
+    xyz, instance, score, middles = _three_faces()
+    network = _FaceNetwork(middles, xyz.min(axis=0).astype(np.float64))
+    with pytest.raises(ValueError, match="oracle heads"):
+        OraclePipeline(Pipeline(network, PipelineConfig(part_radius=0.05)), instance, score,
+                       ("centers",))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from fpcc_ros.commands._pipeline_options import (add_pipeline_arguments, build_pipeline,
                                                  positive_int)
+from fpcc_ros.oracle import ORACLE_HEADS
 
 SEGMENT_OUTPUT_SUFFIX = "_segmented.npz"  # written by `fpcc segment`: predictions, not ground truth
 
@@ -50,11 +51,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="N", help="tune the baselines on the first N scenes, then run "
                         "the chosen settings on all (default: %(default)s)")
     parser.add_argument("--no-baseline", action="store_true", help="evaluate FPCC only")
-    parser.add_argument("--oracle-embeddings", action="store_true",
+    oracle = parser.add_mutually_exclusive_group()
+    oracle.add_argument("--oracle-embeddings", action="store_true",
                         help="ground truth in place of the network: each scene's center scores "
                         "and a one-hot embedding per instance go through the same NMS and "
                         "clustering, so FPCC's figures are the ceiling of --clustering on "
                         "these scenes (the model is loaded for its card only)")
+    oracle.add_argument("--oracle-head", choices=ORACLE_HEADS, default=None,
+                        help="ground truth for this one of the network's outputs, the network's "
+                        "own for the other: which head limits the model (compare with the "
+                        "network alone and with --oracle-embeddings)")
     add_pipeline_arguments(parser)
 
 
@@ -104,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                           fixed_part_radius=args.part_radius is not None,
                           progress=lambda it: tqdm(it, desc="eval", unit="scene", file=sys.stderr),
                           warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr),
-                          columns=args.columns, oracle=args.oracle_embeddings)
+                          columns=args.columns, oracle=_oracle_heads(args))
     except (ModelLoadError, ConfigError, EvalError) as exc:
         return fail(str(exc))
 
@@ -118,3 +124,10 @@ def run(args: argparse.Namespace) -> int:
         return fail(f"cannot write the report to {out} ({exc}); choose another --out")
     print(f"wrote {out}")
     return 0
+
+
+def _oracle_heads(args: argparse.Namespace) -> tuple[str, ...]:
+    """The network outputs ground truth replaces: both, one, or none."""
+    if args.oracle_embeddings:
+        return ORACLE_HEADS
+    return (args.oracle_head,) if args.oracle_head else ()
