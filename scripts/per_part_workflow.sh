@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The per-part workflow the README promises, end to end, with the settings behind its figures:
-# synth (train + validation) -> fine-tune the shipped model (30 min) -> export -> calibrate on
+# synth (train + validation) -> fine-tune the shipped model or $INIT (30 min) -> export -> calibrate on
 # the validation scenes -> eval on separate test scenes (made with seeds never used above).
 #   usage: scripts/per_part_workflow.sh MESH SCALE NAME WORK_DIR [TEST_DIR]
 #   e.g.   scripts/per_part_workflow.sh ../shared/data/meshes/IPAGearShaft.stl 0.5 gear_shaft /work/part
@@ -9,6 +9,7 @@ set -euo pipefail
 MESH=${1:?mesh}; SCALE=${2:?scale}; NAME=${3:?name}; WORK=${4:?work dir}; TEST=${5:-}
 PY=${PY:-.venv/bin/python}
 MINUTES=${MINUTES:-30}
+INIT=${INIT:-default}   # the weights to fine-tune: default (the shipped model) or a .pt checkpoint
 fpcc() { $PY -m fpcc_ros.cli "$@"; }
 synth() {  # OUT SCENES SEED [extra synth options]
   local out=$1 scenes=$2 seed=$3; shift 3
@@ -24,7 +25,7 @@ synth "$D/val" 12 510000 --parts 30 60
 # lr 1e-3: on a machine where 17-19 of the 45 epochs fit in 30 minutes, the gear shaft's
 # validation F1 0.624 against 0.560 with 5e-4 (test 0.60 vs 0.55; same data, same day)
 fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME" \
-           --init default --epochs 45 --time-limit "$MINUTES" --anneal-by-time --lr 1e-3 \
+           --init "$INIT" --epochs 45 --time-limit "$MINUTES" --anneal-by-time --lr 1e-3 \
            --val-every 5
 # the last checkpoint, not "best": best is ranked by validation F1 at the training run's fixed
 # θ and γ, which calibration changes next (on the gear shaft it picked epoch 6 of 30)

@@ -4,8 +4,9 @@ The shipped model of sessions 1-16 trained with ``Adam(weight_decay=1e-4)``: cou
 decay term goes through Adam's per-weight normalisation, so every weight with a small loss
 gradient -- batch-norm scales and biases included -- moved towards zero by about ``lr`` per step
 whatever its size. 80-87 % of the wide layers' channels ended with a scale near 1e-38 and a
-constant input (issue 23). A dead channel never comes back (no gradient reaches it), so this
-module gives training two things: :func:`make_optimizer` (AdamW, decoupled decay on the linear
+constant input (issue 23). A dead channel never comes back by training alone (no gradient
+reaches it; :mod:`fpcc_ros.training.revive` re-initialises it), so this module gives training
+two things: :func:`make_optimizer` (AdamW, decoupled decay on the linear
 weight matrices only, never on norm parameters or biases) and :func:`channel_health` (live
 channels per layer), which ``fpcc train`` records every epoch and ``fpcc export`` checks.
 """
@@ -49,6 +50,14 @@ def dense_layers(model: FPCCNet) -> dict[str, Dense]:
     return {name: module for name, module in model.named_children() if isinstance(module, Dense)}
 
 
+def dead_channels(bn: nn.BatchNorm1d) -> torch.Tensor:
+    """Boolean mask of the norm's channels that output a constant."""
+    dead = bn.weight.abs() < DEAD_SCALE
+    if bn.running_var is not None:
+        dead |= bn.running_var < DEAD_VARIANCE
+    return dead
+
+
 @torch.no_grad()
 def channel_health(model: FPCCNet) -> dict[str, tuple[int, int]]:
     """Layer name -> (live channels, channels), judged by each layer's batch norm."""
@@ -59,9 +68,7 @@ def channel_health(model: FPCCNet) -> dict[str, tuple[int, int]]:
             row = layer.linear.weight.abs().amax(dim=1)
             dead = row < 1e-20
         else:
-            dead = bn.weight.abs() < DEAD_SCALE
-            if bn.running_var is not None:
-                dead |= bn.running_var < DEAD_VARIANCE
+            dead = dead_channels(bn)
         out[name] = (int((~dead).sum()), int(dead.numel()))
     return out
 
