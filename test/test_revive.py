@@ -13,6 +13,7 @@ from fpcc_ros.training.health import channel_health  # noqa: E402
 from fpcc_ros.training.model import TINY, FPCCNet  # noqa: E402
 from fpcc_ros.training.revive import channel_readers, revive_dead_channels  # noqa: E402
 from fpcc_ros.training.train import load_checkpoint, model_from_checkpoint  # noqa: E402
+from net_factory import random_block, trained_like_net  # noqa: E402
 
 SHIPPED = Path(__file__).resolve().parent.parent / "models" / "fpcc_default.pt"
 KILLED = {"edge1b": 3, "edge2b": 2, "edge3": 4, "glob": 20, "point1": 30, "point2": 10,
@@ -20,18 +21,11 @@ KILLED = {"edge1b": 3, "edge2b": 2, "edge3": 4, "glob": 20, "point1": 30, "point
 
 
 def _collapsed_net() -> FPCCNet:
-    """A TINY net with trained-looking norms and channels killed as the shipped one's were:
+    """A trained-looking TINY net with channels killed as the shipped one's were:
     input weights zero, scale ~1e-38, running variance at the floor, a nonzero shift (so the
     constant they output matters to the layers reading them)."""
-    torch.manual_seed(0)
-    net = FPCCNet(TINY)
+    net = trained_like_net()
     with torch.no_grad():
-        for module in net.modules():
-            if isinstance(module, torch.nn.BatchNorm1d):
-                module.weight.uniform_(0.5, 1.5)
-                module.bias.uniform_(-0.2, 0.4)
-                module.running_mean.uniform_(-0.1, 0.1)
-                module.running_var.uniform_(0.5, 2.0)
         for name, count in KILLED.items():
             layer = getattr(net, name)
             layer.linear.weight[:count] = 0.0
@@ -39,14 +33,6 @@ def _collapsed_net() -> FPCCNet:
             layer.bn.running_var[:count] = 6e-45
             layer.bn.bias[:count] = 0.3
     return net.eval()
-
-
-def _block(points: int = 96, k: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    torch.manual_seed(1)
-    features = torch.rand(2, points, 6)
-    knn = torch.randint(0, points, (2, points, k))
-    knn[..., 0] = torch.arange(points)
-    return features, knn
 
 
 def test_readers_cover_every_dense_layer_but_the_inputs() -> None:
@@ -61,7 +47,7 @@ def test_readers_cover_every_dense_layer_but_the_inputs() -> None:
 
 def test_revived_net_computes_the_same_and_is_alive() -> None:
     net = _collapsed_net()
-    features, knn = _block()
+    features, knn = random_block(96, batch=2)
     emb_before, score_before = net(features, knn)
     assert {name: live for name, (live, _) in channel_health(net).items()}["glob"] == \
         TINY.global_dim - KILLED["glob"]
@@ -78,7 +64,7 @@ def test_revived_channels_get_gradient() -> None:
     net = _collapsed_net()
     revive_dead_channels(net, torch.Generator().manual_seed(3))
     net.train()
-    features, knn = _block()
+    features, knn = random_block(96, batch=2)
     emb, score = net(features, knn)
     (emb.square().mean() + score.mean()).backward()
     glob_reads = net.point1.linear.weight.grad[:, 3 * TINY.edge_dim:][:, :KILLED["glob"]]
@@ -89,7 +75,7 @@ def test_revived_channels_get_gradient() -> None:
 
 def test_dead_channels_without_revival_get_no_gradient() -> None:
     net = _collapsed_net().train()
-    features, knn = _block()
+    features, knn = random_block(96, batch=2)
     emb, score = net(features, knn)
     (emb.square().mean() + score.mean()).backward()
     assert net.glob.linear.weight.grad[:KILLED["glob"]].abs().amax() < 1e-20

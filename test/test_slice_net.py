@@ -10,8 +10,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from fpcc_ros.training.model import TINY, FPCCNet  # noqa: E402
+from fpcc_ros.training.model import TINY  # noqa: E402
 from fpcc_ros.training.train import load_checkpoint, model_from_checkpoint  # noqa: E402
+from net_factory import random_block, trained_like_net  # noqa: E402
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "slice_net.py"
 _spec = importlib.util.spec_from_file_location("slice_net", SCRIPT)
@@ -20,25 +21,10 @@ _spec.loader.exec_module(slice_net)
 
 
 def _trained_like_state(seed: int = 0) -> dict:
-    """A TINY net whose batch norms carry non-trivial statistics, as after training."""
-    torch.manual_seed(seed)
-    net = FPCCNet(TINY)
-    with torch.no_grad():
-        for module in net.modules():
-            if isinstance(module, torch.nn.BatchNorm1d):
-                module.weight.uniform_(0.5, 1.5)
-                module.bias.uniform_(-0.2, 0.2)
-                module.running_mean.uniform_(-0.1, 0.1)
-                module.running_var.uniform_(0.5, 2.0)
-    return {"model": net.state_dict(), "net": TINY.to_dict()}
+    return {"model": trained_like_net(seed).state_dict(), "net": TINY.to_dict()}
 
 
-def _block(points: int = 64, k: int = 8):
-    torch.manual_seed(1)
-    features = torch.rand(1, points, 6)
-    knn = torch.randint(0, points, (1, points, k))
-    knn[..., 0] = torch.arange(points)
-    return features, knn
+_block = random_block
 
 
 def test_cutting_to_the_same_widths_gives_the_same_network():
