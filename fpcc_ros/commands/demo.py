@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fpcc_ros.commands._interrupt import StopSignal
+
 DEFAULT_BAG = Path(__file__).resolve().parents[2] / "bags" / "demo"
 
 
@@ -33,15 +35,15 @@ def run(args: argparse.Namespace) -> int:
     from fpcc_ros.commands._interrupt import exit_code, interruptible
 
     try:
-        with interruptible():
-            return _run(args)
+        with interruptible() as stop:
+            return _run(args, stop)
     except KeyboardInterrupt as exc:   # SIGINT or SIGTERM: the with blocks stopped the node
         print(f"fpcc demo: interrupted ({exc or 'SIGINT'}); the node was stopped and no "
               "partial bag was left", file=sys.stderr)
         return exit_code(exc)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, stop: StopSignal) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -84,6 +86,7 @@ def _run(args: argparse.Namespace) -> int:
                 print("fpcc demo: the node did not come up; its log:\n" + node.log(), file=sys.stderr)
                 return 1
             for _, cloud in clouds:
+                stop.check()
                 record = client.send(cloud)
                 if not client.wait_complete(record, args.timeout):
                     print(f"fpcc demo: no output within {args.timeout} s; node log:\n{node.log()}",
@@ -104,6 +107,7 @@ def _run(args: argparse.Namespace) -> int:
             writer.write(in_topic, ts, rec.input)
             for name, msg in rec.outputs.items():
                 writer.write(f"/{name}", ts, msg)
+        stop.check()   # a signal whose exception was lost must not commit the bag
 
     print(f"\n{'frame':>5} {'points':>8} {'valid':>8} {'instances':>9} {'latency ms':>10}")
     for i, rec in enumerate(records):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fpcc_ros.commands._interrupt import exit_code, interruptible
+from fpcc_ros.commands._interrupt import StopSignal, exit_code, interruptible
 from fpcc_ros.commands._pipeline_options import add_pipeline_arguments, build_pipeline
 
 
@@ -40,11 +40,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"fpcc segment: input {args.input} does not exist", file=sys.stderr)
         return 2
     try:
-        with interruptible():
+        with interruptible() as stop:
             pipeline = build_pipeline(args)
             if args.input.is_dir() or args.input.suffix == ".mcap":
-                return _segment_bag(args, pipeline)
-            return _segment_file(args, pipeline)
+                return _segment_bag(args, pipeline, stop)
+            return _segment_file(args, pipeline, stop)
     except (ModelLoadError, ConfigError, BagError, CloudFormatError, ValueError, OSError) as exc:
         print(f"fpcc segment: {exc}", file=sys.stderr)
         return 2
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         return exit_code(exc)
 
 
-def _segment_bag(args: argparse.Namespace, pipeline) -> int:
+def _segment_bag(args: argparse.Namespace, pipeline, stop: StopSignal) -> int:
     from msg_tools.bag import BagWriter, list_topics, pick_cloud_topic, read_messages
     from msg_tools.msg_types import ROSBAGS
     from msg_tools.point_cloud2 import CloudFormatError
@@ -71,6 +71,7 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
                               ("/instance_markers", "visualization_msgs/msg/MarkerArray")):
             writer.add_topic(name, msgtype)
         for _, _, ts, msg in read_messages(args.input, [topic]):
+            stop.check()
             writer.write(topic, ts, msg)
             try:
                 frame = process_cloud(msg, pipeline, ROSBAGS)
@@ -88,6 +89,7 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
             writer.write("/instance_markers", ts, frame.markers)
             rows.append((ts, msg.width * msg.height, frame.result))
             last = (msg, frame)
+        stop.check()   # a signal whose exception was lost must not commit the bag
     _print_table(rows)
     print(f"{len(rows) + skipped} input messages on {topic}: {len(rows)} segmented "
           f"(one output per topic each, same stamps), {skipped} malformed or failed and skipped")
@@ -102,7 +104,7 @@ def _segment_bag(args: argparse.Namespace, pipeline) -> int:
     return 0 if skipped == 0 else 1
 
 
-def _segment_file(args: argparse.Namespace, pipeline) -> int:
+def _segment_file(args: argparse.Namespace, pipeline, stop: StopSignal) -> int:
     from msg_tools.formats import read_scene, write_ply, write_npz
 
     xyz, extra = read_scene(args.input)
@@ -117,6 +119,7 @@ def _segment_file(args: argparse.Namespace, pipeline) -> int:
     scores = result.center_score.reshape(shape)
     _print_table([(0, xyz.size // 3, result)])
     print(f"segmented in {(time.perf_counter() - t0) * 1e3:.0f} ms")
+    stop.check()
     if out.suffix == ".ply":
         write_ply(out, xyz.reshape(-1, 3), labels=labels.reshape(-1), center_score=scores.reshape(-1))
     else:
