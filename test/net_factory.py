@@ -6,10 +6,10 @@ import torch
 from fpcc_ros.training.model import TINY, FPCCNet
 
 
-def trained_like_net(seed: int = 0) -> FPCCNet:
-    """A TINY net whose batch norms carry non-trivial statistics, as after training."""
+def trained_like_net(seed: int = 0, net: FPCCNet | None = None) -> FPCCNet:
+    """A net (TINY unless given) whose batch norms carry non-trivial statistics, as after training."""
     torch.manual_seed(seed)
-    net = FPCCNet(TINY)
+    net = FPCCNet(TINY) if net is None else net
     with torch.no_grad():
         for module in net.modules():
             if isinstance(module, torch.nn.BatchNorm1d):

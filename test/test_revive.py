@@ -10,23 +10,25 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from fpcc_ros.training.health import channel_health  # noqa: E402
-from fpcc_ros.training.model import TINY, FPCCNet  # noqa: E402
+from fpcc_ros.training.model import TINY, FPCCNet, NetConfig  # noqa: E402
 from fpcc_ros.training.revive import channel_readers, revive_dead_channels  # noqa: E402
 from fpcc_ros.training.train import load_checkpoint, model_from_checkpoint  # noqa: E402
 from net_factory import random_block, trained_like_net  # noqa: E402
 
-SHIPPED = Path(__file__).resolve().parent.parent / "models" / "fpcc_default.pt"
 KILLED = {"edge1b": 3, "edge2b": 2, "edge3": 4, "glob": 20, "point1": 30, "point2": 10,
           "emb_hidden": 12, "score_hidden": 5}
+# what the shipped default had lost before its revival (issue 23; model_health.py on it)
+DEFAULT_KILLED = {"edge1b": 1, "edge2a": 1, "edge3": 4, "glob": 892, "point1": 410, "point2": 156,
+                  "emb_hidden": 87, "score_hidden": 66}
 
 
-def _collapsed_net() -> FPCCNet:
-    """A trained-looking TINY net with channels killed as the shipped one's were:
+def _collapsed_net(net: FPCCNet | None = None, killed: dict[str, int] = KILLED) -> FPCCNet:
+    """A trained-looking net (TINY unless given) with channels killed as the shipped one's were:
     input weights zero, scale ~1e-38, running variance at the floor, a nonzero shift (so the
     constant they output matters to the layers reading them)."""
-    net = trained_like_net()
+    net = trained_like_net(net=net)
     with torch.no_grad():
-        for name, count in KILLED.items():
+        for name, count in killed.items():
             layer = getattr(net, name)
             layer.linear.weight[:count] = 0.0
             layer.bn.weight[:count] = 1e-38
@@ -82,19 +84,17 @@ def test_dead_channels_without_revival_get_no_gradient() -> None:
     assert net.glob.bn.weight.grad[:KILLED["glob"]].abs().amax() < 1e-20
 
 
-@pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped weights are not in this checkout")
-def test_shipped_net_revives_to_the_same_outputs() -> None:
-    state = load_checkpoint(SHIPPED)
-    net = model_from_checkpoint(state).eval()
-    if all(live == total for live, total in channel_health(net).values()):
-        pytest.skip("the shipped net has no dead channels to revive")
+def test_full_width_net_killed_as_the_shipped_one_was_revives_to_the_same_outputs() -> None:
+    """The shipped net's collapse at full width (DEFAULT_KILLED): 1,617 channels, most of glob."""
+    net = _collapsed_net(FPCCNet(NetConfig()), DEFAULT_KILLED)
+    assert {name: total - live for name, (live, total) in channel_health(net).items()
+            if live < total} == DEFAULT_KILLED
     torch.manual_seed(2)
     features = torch.rand(1, 512, 6) - 0.5
     knn = torch.randint(0, 512, (1, 512, 16))
     knn[..., 0] = torch.arange(512)
     emb_before, score_before = net(features, knn)
-    revived = revive_dead_channels(net, torch.Generator().manual_seed(0))
-    assert revived["glob"] > 500
+    assert revive_dead_channels(net, torch.Generator().manual_seed(0)) == DEFAULT_KILLED
     emb_after, score_after = net(features, knn)
     torch.testing.assert_close(emb_after, emb_before, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(score_after, score_before, atol=1e-5, rtol=1e-4)
