@@ -312,25 +312,6 @@ def assign_reference(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray
     return labels
 
 
-def majority_labels(labels: np.ndarray, rows: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """The most common label among each of ``rows``' graph neighbours (``neighbours``: (rows, k)
-    indices into ``labels``, the row itself usually among them); a tie keeps the row's own
-    label when it is one of the tied, else takes the smallest.
-
-    Used after clustering: a part's points lie together, so a point whose neighbours mostly
-    carry another label (a stray assignment across a boundary, a gated-out point inside a
-    part) takes theirs.
-    """
-    if len(rows) == 0:
-        return np.zeros(0, dtype=labels.dtype)
-    m = int(labels.max()) + 1
-    index = np.arange(len(rows))[:, None] * m
-    counts = np.bincount((index + labels[neighbours]).ravel(),
-                         minlength=len(rows) * m).reshape(len(rows), m) * 2
-    counts[np.arange(len(rows)), labels[rows]] += 1    # the tie-break: half a vote
-    return counts.argmax(axis=1).astype(labels.dtype)
-
-
 def close_center_pairs(center_xyz: np.ndarray, center_embedding: np.ndarray, d_max: float,
                        max_distance: float) -> np.ndarray:
     """(m, 2) index pairs i < j of centers within 2 d_max of each other in 3D whose embeddings

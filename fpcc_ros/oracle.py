@@ -72,8 +72,7 @@ class OraclePipeline(Pipeline):
             embedding = network.embedding
         score = self._net_score[core].astype(np.float32) if "center_score" in self._heads \
             else network.score
-        return _BlockRun(core=core, ext=ext, embedding=embedding, score=score,
-                         neighbours=ext[knn[0, :len(core)]])
+        return _BlockRun(core=core, ext=ext, embedding=embedding, score=score)
 
 
 def representative_truth(inverse: np.ndarray, instance: np.ndarray, score: np.ndarray,

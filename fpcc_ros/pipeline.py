@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from fpcc_ros.clustering import (assign_to_center_points, center_prototypes, close_center_pairs,
-                                 connect_fragments, majority_labels, merge_labels,
+                                 connect_fragments, merge_labels,
                                  single_thread_blas)
 from fpcc_ros.dbscan import dbscan
 from fpcc_ros.fragments import PIXEL_LINK, pixel_fragments
@@ -52,8 +52,6 @@ class PipelineConfig:
     center_merge: float = 0.0  # merge centers within 2 d_max whose embeddings are closer (0 = off)
     center_prototype: float = 0.0  # a center's embedding: mean of its like neighbours within
     #   this many part radii (clustering.center_prototypes); 0 = its own, as in the paper
-    label_smoothing: int = 1   # passes of majority vote over the network's kNN graph after
-    #   clustering (0 = off): +3-8 points P, +2-4 R on the IPA test piles, per-part and zero-shot
     global_stride: int = 1     # the network's global feature: max over every s-th point of a
     #   block (1 = all, exact; needs a model with the input, FpccModel.supports_global_stride)
     clustering: str = "paper"  # "paper": each point to its center (§3.2); "connected": the
@@ -124,8 +122,6 @@ class PipelineConfig:
         need(_finite(self.feature_gate) and self.feature_gate > 0, "feature_gate", "> 0")
         need(_finite(self.center_merge) and 0 <= self.center_merge <= 10, "center_merge",
              "between 0 (off) and 10 (an embedding distance; the paper's eps2 is 1)")
-        need(isinstance(self.label_smoothing, int) and 0 <= self.label_smoothing <= 5,
-             "label_smoothing", "an integer from 0 (off) to 5 passes")
         need(_finite(self.center_prototype) and 0 <= self.center_prototype <= 2,
              "center_prototype", "between 0 (the center point's own embedding) and 2 part radii")
         need(isinstance(self.global_stride, int) and not isinstance(self.global_stride, bool)
@@ -200,8 +196,6 @@ class _BlockRun:
     ext: np.ndarray         # core followed by halo indices
     embedding: np.ndarray   # (len(ext), D)
     score: np.ndarray       # (len(core),)
-    neighbours: np.ndarray  # (len(core), k): the network's graph of the core points, indices
-    #                         into the network points
 
     def centers_seen(self, num_points: int, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The centers this pass saw: their ranks and their rows in the pass (its embeddings)."""
@@ -310,12 +304,6 @@ class Pipeline:
                 pairs.append(run.close_centers(net_xyz, centers, seen[0], center_embedding, cfg))
         if merging:
             net_labels = merge_labels(net_labels, len(centers), np.concatenate(pairs))
-        # 6b. majority vote over the network's own neighbourhood graph (label_smoothing passes)
-        if cfg.label_smoothing and runs:
-            rows = np.concatenate([run.core for run in runs])
-            graph = np.concatenate([run.neighbours for run in runs])
-            for _ in range(cfg.label_smoothing):
-                net_labels[rows] = majority_labels(net_labels, rows, graph)
         clock.lap("cluster")
         # 6c. connected: geometric fragments of the valid points off the floor (an organized
         #     cloud: from pixel adjacency, fpcc_ros.fragments; else DBSCAN on a grid of half
@@ -439,8 +427,7 @@ class Pipeline:
                    knn: np.ndarray) -> _BlockRun:
         """One network pass; the scores of the core points, the embeddings of all."""
         emb, sc = self.model.run(feats, knn, global_stride=self.config.global_stride)
-        return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)],
-                         neighbours=ext[knn[0, :len(core)]])
+        return _BlockRun(core=core, ext=ext, embedding=emb[0], score=sc[0, :len(core)])
 
 
 def _off_floor_rows(inverse: np.ndarray, floor_free: np.ndarray, num_network_points: int

@@ -61,7 +61,7 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
 PIPELINE_PARAMS = ("part_radius", "screening_factor", "score_threshold", "min_points", "roi_min",
                    "roi_max", "voxel_size", "feature_gate", "center_merge", "center_prototype",
-                   "label_smoothing", "view_axis", "global_stride", "clustering")
+                   "view_axis", "global_stride", "clustering")
 MODEL_PARAMS = ("model", "providers", "threads")
 
 
@@ -123,10 +123,6 @@ PARAMS = (
            "within this many part radii that lie within the loss's pull margin (0.5) of it "
            "(less noisy than one point's). 0 = the center point's own, as in the paper. "
            "Default: the model card's.", 0.0, 2.0),
-    _Param("label_smoothing", ParameterType.PARAMETER_INTEGER,
-           "Passes of majority vote over the network's neighbourhood graph after clustering: a "
-           "point takes the label most of its neighbours carry (removes stray assignments "
-           "across part boundaries). 0 = off.", 0, 5),
     _Param("global_stride", ParameterType.PARAMETER_INTEGER,
            "The network's global feature (a max over each block) taken over every s-th point "
            "of the block instead of all: 1 = every point, exact; 4 cuts the network's time by "
@@ -267,7 +263,6 @@ class SegmenterNode(Node):
             "feature_gate": card.feature_gate if card else 1.0,
             "center_merge": card.center_merge if card else 0.0,
             "center_prototype": card.center_prototype if card else 0.0,
-            "label_smoothing": PipelineConfig.label_smoothing,
             "view_axis": PipelineConfig.view_axis,
             "global_stride": card.global_stride if card else 1,
             "clustering": card.clustering if card else PipelineConfig.clustering,

@@ -273,7 +273,7 @@ def test_the_oracle_replaces_only_the_heads_it_is_given(heads, labelled_faces, w
     network = _FaceNetwork(middles, xyz.min(axis=0).astype(np.float64))
     cfg = PipelineConfig(part_radius=0.05, voxel_size=0.0, remove_floor=False, min_points=1,
                          score_threshold=0.5, screening_factor=1.0, feature_gate=1.0,
-                         label_smoothing=0, block_size=4096)
+                         block_size=4096)
     labels = OraclePipeline(Pipeline(network, cfg), instance, score, heads).segment(xyz).labels
     assert {f for f in (1, 2, 3) if (labels[instance == f] > 0).any()} == labelled_faces
     assert {f for f in (1, 2, 3) if (labels[instance == f] > 0).all()} == whole_faces

@@ -267,19 +267,20 @@ def test_invalid_parameter_updates_are_rejected_with_a_reason_and_the_old_value_
         assert node.get_parameter("model").value == str(TINY)
         assert node._pipeline.model is model_before
 
-    result = _set(node, label_smoothing=9)
-    assert not result.successful and "label_smoothing" in result.reason
-    assert node._pipeline.config.label_smoothing == 1
+    prototype_before = node._pipeline.config.center_prototype
+    result = _set(node, center_prototype=5.0)
+    assert not result.successful and "center_prototype" in result.reason
+    assert node._pipeline.config.center_prototype == prototype_before
 
     # the node still runs with the old settings (the accepted ROI holds the whole scene)
     np.testing.assert_array_equal(live.segment(scene(2)), before)
     assert node.stats.failed == 0
 
     # the new clustering settings apply at runtime
-    result = _set(node, label_smoothing=0, center_prototype=0.5)
+    result = _set(node, center_prototype=0.5, center_merge=0.7)
     assert result.successful, result.reason
-    assert (node._pipeline.config.label_smoothing, node._pipeline.config.center_prototype) == \
-        (0, 0.5)
+    assert (node._pipeline.config.center_prototype, node._pipeline.config.center_merge) == \
+        (0.5, 0.7)
 
 
 def test_a_valid_model_change_swaps_models_between_frames(live, tmp_path):
@@ -289,9 +290,6 @@ def test_a_valid_model_change_swaps_models_between_frames(live, tmp_path):
     other = _model(tmp_path, "tiny_coarse", TINY.read_bytes(), name="tiny_coarse",
                    voxel_factor=0.3)
     cloud = cf.make_cloud(cf.scene_xyz(60, 80, seed=0, spheres=8), "xyz32")
-    # the untrained tiny network's instances are scattered points that label smoothing's
-    # majority vote erases; this test is about swapping models, so without it
-    assert _set(live.node, label_smoothing=0).successful
     old = live.segment(cloud)
     assert old.any(), "precondition: the old model finds instances in this cloud"
     stamps, stop = [], threading.Event()

@@ -25,8 +25,6 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--center-prototype", type=float, default=None,
                        help="part radii around a center whose like points' mean embedding "
                        "stands for it (0 = the center point's own)")
-    group.add_argument("--label-smoothing", type=int, default=None,
-                       help="passes of kNN majority vote after clustering (0 = off; default 1)")
     group.add_argument("--global-stride", type=int, default=None,
                        help="the network's global feature over every s-th point of a block "
                        "(1 = every point, exact; default: the model card's)")
@@ -69,7 +67,7 @@ PROVIDERS = {"cpu": ["CPUExecutionProvider"],
 
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
-             "feature_gate", "center_merge", "center_prototype", "label_smoothing", "roi_min",
+             "feature_gate", "center_merge", "center_prototype", "roi_min",
              "roi_max", "view_axis", "global_stride", "clustering", "fragment_eps",
              "fragment_density", "fragment_min_points", "fragment_join")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
