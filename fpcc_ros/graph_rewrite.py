@@ -46,6 +46,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from fpcc_ros.features import FEATURE_NAMES_WITH_NORMALS
 from fpcc_ros.onnx_model import STRIDE_INPUT
 from fpcc_ros.weight_flush import flush_tiny_weights
 
@@ -436,8 +437,9 @@ def optimize_file(src: Path | str, dst: Path | str, check: bool = True,
 
 
 def sample_blocks(k: int, part_radius: float, sizes=(300, 2500), batch: int = 2,
-                  seed: int = 0) -> list[dict[str, np.ndarray]]:
-    """Network inputs from random points on a few part-sized spheres (real features and kNN)."""
+                  seed: int = 0, normals: bool = False) -> list[dict[str, np.ndarray]]:
+    """Network inputs from random points on a few part-sized spheres (real features and kNN;
+    with ``normals`` the surface-normal columns too)."""
     from fpcc_ros.features import block_features, knn_graph
 
     rng = np.random.default_rng(seed)
@@ -449,8 +451,9 @@ def sample_blocks(k: int, part_radius: float, sizes=(300, 2500), batch: int = 2,
             dirs = rng.normal(size=(n, 3))
             xyz = centers[rng.integers(0, 6, n)] + part_radius * dirs / np.linalg.norm(
                 dirs, axis=1, keepdims=True)
-            feats.append(block_features(xyz, part_radius))
-            knns.append(knn_graph(xyz, k))
+            knn = knn_graph(xyz, k)
+            feats.append(block_features(xyz, part_radius, knn if normals else None))
+            knns.append(knn)
         feeds.append({"features": np.stack(feats), "knn": np.stack(knns)})
     return feeds
 
@@ -469,11 +472,13 @@ def compare_models(original: bytes, rewritten: bytes, card_path: Path | None = N
     options.log_severity_level = 3   # not the warning that global_stride is not a constant
     a = ort.InferenceSession(original, options, providers=["CPUExecutionProvider"])
     b = ort.InferenceSession(rewritten, options, providers=["CPUExecutionProvider"])
-    knn_width = {i.name: i.shape for i in a.get_inputs()}.get("knn", [None])[-1]
+    shapes = {i.name: i.shape for i in a.get_inputs()}
+    knn_width = shapes.get("knn", [None])[-1]
     if isinstance(knn_width, int):  # the graph itself says k (no card yet at export time)
         k = knn_width
+    normals = shapes.get("features", [None])[-1] == len(FEATURE_NAMES_WITH_NORMALS)
     worst = 0.0
-    for feed in sample_blocks(k, radius):
+    for feed in sample_blocks(k, radius, normals=normals):
         for x, y in zip(a.run(None, feed), b.run(None, feed)):
             worst = max(worst, float(np.abs(x - y).max()))
     return worst

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fpcc_ros.features import FEATURE_NAMES
+from fpcc_ros.features import FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS
 
 CARD_FORMAT = "fpcc_ros/model-card/1"
 EMBEDDING_DIM = 128
@@ -52,6 +52,11 @@ class ModelCard:
     training: dict[str, Any] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def uses_normals(self) -> bool:
+        """Whether the network takes surface normals (features.surface_normals) as columns 6-8."""
+        return self.feature_names == FEATURE_NAMES_WITH_NORMALS
+
     def to_json(self) -> dict[str, Any]:
         """The on-disk form, with the input/output description spelled out for humans."""
         body = asdict(self)
@@ -65,7 +70,11 @@ class ModelCard:
                     "shape": ["batch", "points", len(self.feature_names)],
                     "normalisation": "columns 0-2: xyz minus the block minimum, divided by "
                     "part_radius; columns 3-5: xyz minus the block minimum, divided by the "
-                    "block extent per axis (0..1). Blocks are spatial tiles of at most "
+                    "block extent per axis (0..1)" + (
+                        "; columns 6-8: the unit surface normal of each point's 8 nearest "
+                        "neighbours in the knn input (itself included), facing -z"
+                        if self.uses_normals else "") +
+                    ". Blocks are spatial tiles of at most "
                     "block_size points after voxel downsampling at voxel_factor * part_radius.",
                 },
                 "knn": {
@@ -156,8 +165,10 @@ def _check_values(card: ModelCard, path: Path) -> None:
          and card.fragment_min_points >= 1, "an integer >= 1 (input points)"),
         ("fragment_join", card.fragment_join,
          _number(card.fragment_join) and 0 <= card.fragment_join <= 4, "between 0 and 4 part radii"),
-        ("feature_names", card.feature_names, card.feature_names == FEATURE_NAMES,
-         f"{list(FEATURE_NAMES)} (this runtime's features)"),
+        ("feature_names", card.feature_names,
+         card.feature_names in (FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS),
+         f"{list(FEATURE_NAMES)} or, for a model trained with normals, "
+         f"{list(FEATURE_NAMES_WITH_NORMALS)} (this runtime's features)"),
     ]
     for key, value, ok, expected in checks:
         if not ok:

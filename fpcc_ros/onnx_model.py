@@ -162,8 +162,9 @@ class FpccModel:
 
         card, n = self.card, max(4 * self.card.k, 64)
         xyz = np.random.default_rng(0).uniform(0.0, 4.0 * card.part_radius, (n, 3))
-        features = block_features(xyz, card.part_radius)[None]
-        knn = knn_graph(xyz, card.k)[None]
+        knn = knn_graph(xyz, card.k)
+        features = block_features(xyz, card.part_radius, knn if card.uses_normals else None)[None]
+        knn = knn[None]
         try:
             embedding, score = self.run(features, knn)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types

@@ -419,8 +419,10 @@ class Pipeline:
         width = max(card.k, card.knn_reach)
         knns = [select_neighbours(g, card.k, card.knn_near, width) for g in
                 block_knn_graphs(pts, exts, width, self._knn_workers)]
+        normals = card.uses_normals
         return [(candidates[core], candidates[ext],
-                 block_features(np.take(pts, ext, axis=0), cfg.part_radius)[None], knn[None])
+                 block_features(np.take(pts, ext, axis=0), cfg.part_radius,
+                                knn if normals else None)[None], knn[None])
                 for core, ext, knn in zip(cores, exts, knns)]
 
     def _run_block(self, core: np.ndarray, ext: np.ndarray, feats: np.ndarray,

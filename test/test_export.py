@@ -261,7 +261,8 @@ def test_fine_tuning_keeps_the_init_models_graph_unless_told_otherwise(scenes, t
                  "--epochs", "1", "--init", str(base), "--net", "tiny", "--threads", "1"]) == 0
     tuned = load_checkpoint(tmp_path / "tuned" / "checkpoint_last.pt")["config"]["data"]
     assert {f: tuned[f] for f in train_mod.GRAPH_FIELDS} == \
-        {"k": 8, "block_size": 256, "voxel_factor": 0.15, "knn_near": 4, "knn_reach": 12}
+        {"k": 8, "block_size": 256, "voxel_factor": 0.15, "knn_near": 4, "knn_reach": 12,
+         "normals": False}
     capsys.readouterr()
 
     # an explicit setting wins, with a warning when it departs from the init weights

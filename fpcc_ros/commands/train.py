@@ -43,6 +43,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="dilated neighbourhood: this many nearest, the rest spread over "
                         "--knn-reach nearest (0 = plain kNN)" + inherited.format(8))
     parser.add_argument("--knn-reach", type=int, default=None, help=inherited.format(48).strip())
+    parser.add_argument("--normals", action="store_const", const=True, default=None,
+                        help="surface normals as three more input columns (touching parts "
+                        "meet at creases); with --init of weights without them, those weights "
+                        "are widened to take them, computing the same until trained (default: "
+                        "the --init weights' choice, else off)")
     parser.add_argument("--voxel-factor", type=float, default=None,
                         help="voxel size as a fraction of the part radius" + inherited.format(0.1))
     parser.add_argument("--alpha", type=float, default=TRAIN_ALPHA,
@@ -75,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         data = data_config_for(None if args.resume else args.init, k=args.k,
                                block_size=args.block_size, voxel_factor=args.voxel_factor,
-                               knn_near=args.knn_near, knn_reach=args.knn_reach)
+                               knn_near=args.knn_near, knn_reach=args.knn_reach,
+                               normals=args.normals)
         config = TrainConfig(
             epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
             alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,

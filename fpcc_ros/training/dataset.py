@@ -36,6 +36,7 @@ class DataConfig:
     remove_floor: bool = True   # as the runtime pipeline does (fpcc_ros.pipeline step 2b)
     knn_near: int = 8           # dilated neighbourhood (features.neighbour_columns); 0 = plain
     knn_reach: int = 48
+    normals: bool = False       # surface normals as three more input columns (fpcc train --normals)
 
     @classmethod
     def from_dict(cls, body: dict[str, Any]) -> "DataConfig":
@@ -65,7 +66,7 @@ class Scene:
 class Block:
     """One network input. ``index`` maps rows to the points the block was cut from."""
 
-    features: np.ndarray       # (n, 6) float32
+    features: np.ndarray       # (n, 6) float32, (n, 9) with normals
     knn: np.ndarray            # (n, k) int64
     xyz: np.ndarray            # (n, 3) float32
     instance: np.ndarray       # (n,) int64
@@ -131,7 +132,7 @@ def find_scenes(dirs: Sequence[str | Path]) -> list[Path]:
 def blocks_from_points(xyz: np.ndarray, instance: np.ndarray, center_score: np.ndarray,
                        part_radius: float, block_size: int, k: int,
                        skip_empty: bool = True, knn_near: int = 0,
-                       knn_reach: int = 0) -> list[Block]:
+                       knn_reach: int = 0, normals: bool = False) -> list[Block]:
     """Cut points into spatial blocks and compute each block's network inputs."""
     blocks = []
     for idx in spatial_blocks(xyz, block_size):
@@ -139,7 +140,9 @@ def blocks_from_points(xyz: np.ndarray, instance: np.ndarray, center_score: np.n
         if skip_empty and not (inst > 0).any():
             continue
         pts = xyz[idx]
-        blocks.append(Block(features=block_features(pts, part_radius), knn=knn_graph(pts, k, near=knn_near, reach=knn_reach),
+        knn = knn_graph(pts, k, near=knn_near, reach=knn_reach)
+        blocks.append(Block(features=block_features(pts, part_radius, knn if normals else None),
+                            knn=knn,
                             xyz=pts.astype(np.float32), instance=inst,
                             center_score=center_score[idx].astype(np.float32),
                             part_radius=part_radius, index=idx.astype(np.int64)))
@@ -163,7 +166,7 @@ def scene_blocks(scene: Scene, config: DataConfig, rng: np.random.Generator | No
             keep, inverse = keep[~on_floor], None
     blocks = blocks_from_points(xyz[keep], scene.instance[keep], scene.center_score[keep],
                                 scene.part_radius, config.block_size, config.k, skip_empty,
-                                config.knn_near, config.knn_reach)
+                                config.knn_near, config.knn_reach, config.normals)
     return SceneBlocks(rep=keep, inverse=inverse, blocks=blocks)
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fpcc_ros.features import block_features, knn_graph
+from fpcc_ros.features import FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS, block_features, knn_graph
 from fpcc_ros.model_card import ModelCard, card_path_for
 from fpcc_ros.weight_flush import FLUSH_BELOW, TINY as TINY_FLOAT
 from fpcc_ros.training.health import EXPORT_DEAD_SHARE, channel_health, dead_layers, health_line
@@ -32,7 +32,7 @@ def export_onnx(model: FPCCNet, path: str | Path, k: int) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     folded = fold_batchnorm(model)
-    features, knn = _example_inputs(2, max(4 * k, 64), k, seed=0)
+    features, knn = _example_inputs(2, max(4 * k, 64), k, seed=0, normals=model.config.normals)
     kwargs: dict[str, Any] = dict(input_names=["features", "knn"],
                                   output_names=["embedding", "center_score"], opset_version=OPSET)
     dynamic_axes = {"features": {0: "batch", 1: "points"}, "knn": {0: "batch", 1: "points"},
@@ -76,7 +76,7 @@ def check_onnx(model: FPCCNet, path: str | Path, k: int, batch: int = 2, points:
     """Max |onnxruntime - torch| over both outputs on a random block of real geometry."""
     import onnxruntime as ort
 
-    features, knn = _example_inputs(batch, points, k, seed)
+    features, knn = _example_inputs(batch, points, k, seed, normals=model.config.normals)
     model = model.eval()
     with torch.no_grad():
         emb, score = model(features, knn)
@@ -125,6 +125,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
     last = history[-1] if history else {}
     card = ModelCard(
         name=name or out.stem, k=config.data.k, part_radius=float(part_radius),
+        feature_names=_feature_names(model.config),
         knn_near=config.data.knn_near, knn_reach=config.data.knn_reach,
         block_size=int(block_size or config.data.block_size), voxel_factor=config.data.voxel_factor,
         screening_factor=config.screening_factor, score_threshold=config.score_threshold,
@@ -162,11 +163,13 @@ def export_untrained(path: str | Path, k: int = 16, seed: int = 0, part_radius: 
     model.train()
     with torch.no_grad():
         for i in range(4):
-            model(*_example_inputs(2, 256, k, seed=seed + 100 + i, part_radius=part_radius))
+            model(*_example_inputs(2, 256, k, seed=seed + 100 + i, part_radius=part_radius,
+                                   normals=net.normals))
     model.eval()
     path = Path(path)
     export_onnx(model, path, k)
     card = ModelCard(name=path.stem, k=k, part_radius=part_radius, block_size=block_size,
+                     feature_names=_feature_names(net),
                      description="UNTRAINED FPCC-Net for tests: right inputs and outputs, "
                      "meaningless predictions", trained_on={}, training={"untrained": True, "seed": seed,
                                                                          "net": net.to_dict()})
@@ -174,8 +177,12 @@ def export_untrained(path: str | Path, k: int = 16, seed: int = 0, part_radius: 
     return card
 
 
-def _example_inputs(batch: int, points: int, k: int, seed: int,
-                    part_radius: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
+def _feature_names(net: NetConfig) -> tuple[str, ...]:
+    return FEATURE_NAMES_WITH_NORMALS if net.normals else FEATURE_NAMES
+
+
+def _example_inputs(batch: int, points: int, k: int, seed: int, part_radius: float = 0.05,
+                    normals: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Blocks of random points on a few spheres (real features and kNN graphs)."""
     rng = np.random.default_rng(seed)
     feats, knns = [], []
@@ -183,8 +190,9 @@ def _example_inputs(batch: int, points: int, k: int, seed: int,
         centers = rng.uniform(0, 4 * part_radius, size=(4, 3))
         dirs = rng.normal(size=(points, 3))
         xyz = centers[rng.integers(0, 4, points)] + part_radius * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-        feats.append(block_features(xyz, part_radius))
-        knns.append(knn_graph(xyz, k))
+        knn = knn_graph(xyz, k)
+        feats.append(block_features(xyz, part_radius, knn if normals else None))
+        knns.append(knn)
     return torch.from_numpy(np.stack(feats)), torch.from_numpy(np.stack(knns))
 
 
@@ -196,7 +204,9 @@ def time_onnx(path: str | Path, points: int = 4096, k: int = 16, threads: int = 
     options = ort.SessionOptions()
     options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    features, knn = _example_inputs(1, points, k, seed=3)
+    width = {i.name: i.shape for i in session.get_inputs()}["features"][-1]
+    features, knn = _example_inputs(1, points, k, seed=3,
+                                    normals=width == len(FEATURE_NAMES_WITH_NORMALS))
     feed = {"features": features.numpy(), "knn": knn.numpy()}
     session.run(None, feed)
     times = []

@@ -22,14 +22,14 @@ for export.
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.fusion import fuse_linear_bn_eval
 
-from fpcc_ros.features import NUM_FEATURES
+from fpcc_ros.features import FEATURE_NAMES_WITH_NORMALS, NUM_FEATURES
 from fpcc_ros.model_card import EMBEDDING_DIM
 
 
@@ -42,6 +42,12 @@ class NetConfig:
     point_dims: tuple[int, int] = (512, 256)
     head_dim: int = 128
     embedding_dim: int = EMBEDDING_DIM
+    in_features: int = NUM_FEATURES   # 9 with surface normals (fpcc train --normals)
+
+    @property
+    def normals(self) -> bool:
+        """Whether the network takes surface normals (features.surface_normals) as inputs."""
+        return self.in_features == len(FEATURE_NAMES_WITH_NORMALS)
 
     def to_dict(self) -> dict:
         body = asdict(self)
@@ -118,13 +124,13 @@ def global_split(layer: Dense, local: torch.Tensor, glob: torch.Tensor) -> torch
 
 
 class FPCCNet(nn.Module):
-    """forward(features (B,N,6), knn (B,N,K)) -> (embedding (B,N,128), center_score (B,N))."""
+    """forward(features (B,N,6 or 9), knn (B,N,K)) -> (embedding (B,N,128), center_score (B,N))."""
 
     def __init__(self, config: NetConfig = NetConfig()):
         super().__init__()
         self.config = config
         e, (p1, p2), h = config.edge_dim, config.point_dims, config.head_dim
-        self.edge1a, self.edge1b = Dense(2 * NUM_FEATURES, e), Dense(e, e)
+        self.edge1a, self.edge1b = Dense(2 * config.in_features, e), Dense(e, e)
         self.edge2a, self.edge2b = Dense(2 * e, e), Dense(e, e)
         self.edge3 = Dense(2 * e, e)
         self.glob = Dense(3 * e, config.global_dim)
@@ -149,6 +155,24 @@ class FPCCNet(nn.Module):
         """Max over neighbours. Same values either way: max() has the cheaper backward (indices,
         not equality masks), amax() exports to a single ReduceMax."""
         return x.max(dim=dim).values if self.training else x.amax(dim=dim)
+
+
+@torch.no_grad()
+def with_normal_inputs(model: FPCCNet) -> FPCCNet:
+    """A copy of a 6-input ``model`` that takes the surface normals too and computes exactly
+    what ``model`` does: the first EdgeConv's weights on the new columns (the normal n_i and
+    n_j - n_i) start at zero, and training then learns to read them. So a healthy trained net
+    can be fine-tuned with normals instead of trained again from scratch."""
+    if model.config.normals:
+        return model
+    c, extra = model.config.in_features, len(FEATURE_NAMES_WITH_NORMALS) - NUM_FEATURES
+    widened = FPCCNet(replace(model.config, in_features=c + extra))
+    state = model.state_dict()
+    w = state["edge1a.linear.weight"]                      # (e, 2c): [x_i, x_j - x_i]
+    zeros = w.new_zeros(w.shape[0], extra)
+    state["edge1a.linear.weight"] = torch.cat([w[:, :c], zeros, w[:, c:], zeros], dim=1)
+    widened.load_state_dict(state)
+    return widened.train(model.training)
 
 
 def fold_batchnorm(model: FPCCNet) -> FPCCNet:

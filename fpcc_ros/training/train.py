@@ -24,13 +24,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from fpcc_ros.features import FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS
 from fpcc_ros.onnx_model import default_model_path
 from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
     load_scene, scene_blocks
 from fpcc_ros.training.health import WARN_DEAD_SHARE, channel_health, dead_layers, \
     gradient_norm, health_line, make_optimizer
 from fpcc_ros.training.loss import EPS1, EPS2, batch_loss, distill_loss
-from fpcc_ros.training.model import FPCCNet, NetConfig
+from fpcc_ros.training.model import FPCCNet, NetConfig, with_normal_inputs
 
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
@@ -186,7 +187,7 @@ def resolve_init(init: str | Path) -> Path:
 
 # What the network's inputs are built with: fine-tuning must keep them, or the weights meet
 # neighbourhoods and densities they were never trained on
-GRAPH_FIELDS = ("k", "block_size", "voxel_factor", "knn_near", "knn_reach")
+GRAPH_FIELDS = ("k", "block_size", "voxel_factor", "knn_near", "knn_reach", "normals")
 
 
 def data_config_for(init: str | Path | None, **explicit: Any) -> DataConfig:
@@ -256,7 +257,9 @@ class TorchBlockModel:
                               knn_near=config.data.knn_near, knn_reach=config.data.knn_reach,
                               block_size=config.data.block_size,
                               voxel_factor=config.data.voxel_factor,
-                              embedding_dim=net.config.embedding_dim)
+                              embedding_dim=net.config.embedding_dim,
+                              feature_names=FEATURE_NAMES_WITH_NORMALS if net.config.normals
+                              else FEATURE_NAMES)
 
     @torch.no_grad()
     def run(self, features: np.ndarray, knn: np.ndarray,
@@ -413,9 +416,19 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
     if state is None and init is not None:
         init_state = load_checkpoint(resolve_init(init))
         config = replace(config, net=NetConfig.from_dict(init_state.get("net", {})))
+    elif state is None:   # from scratch: the inputs the data settings ask for
+        config = replace(config, net=replace(config.net, in_features=len(
+            FEATURE_NAMES_WITH_NORMALS if config.data.normals else FEATURE_NAMES)))
     model = FPCCNet(config.net)
     if init_state is not None:
         model.load_state_dict(init_state["model"])
+        if config.data.normals and not model.config.normals:   # --normals on 6-input weights
+            model = with_normal_inputs(model)
+            config = replace(config, net=model.config)
+    if model.config.normals != config.data.normals:
+        raise ValueError(f"the network {'takes' if model.config.normals else 'does not take'} "
+                         f"surface normals but the data settings say normals="
+                         f"{config.data.normals}; leave --normals to the --init weights")
     teacher = load_teacher(config.teacher, config.net, config.data) if config.teacher else None
     optimizer = make_optimizer(model, config.lr, config.weight_decay)
 
