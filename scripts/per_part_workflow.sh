@@ -10,6 +10,7 @@ MESH=${1:?mesh}; SCALE=${2:?scale}; NAME=${3:?name}; WORK=${4:?work dir}; TEST=$
 PY=${PY:-.venv/bin/python}
 MINUTES=${MINUTES:-30}
 INIT=${INIT:-default}   # the weights to fine-tune: default (the shipped model) or a .pt checkpoint
+TRAIN_ARGS=${TRAIN_ARGS:-}   # more `fpcc train` options, e.g. "--normals" (later ones win)
 fpcc() { $PY -m fpcc_ros.cli "$@"; }
 synth() {  # OUT SCENES SEED [extra synth options]
   local out=$1 scenes=$2 seed=$3; shift 3
@@ -26,7 +27,7 @@ synth "$D/val" 12 510000 --parts 30 60
 # validation F1 0.624 against 0.560 with 5e-4 (test 0.60 vs 0.55; same data, same day)
 fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME" \
            --init "$INIT" --epochs 45 --time-limit "$MINUTES" --anneal-by-time --lr 1e-3 \
-           --val-every 5
+           --val-every 5 $TRAIN_ARGS
 # the last checkpoint, not "best": best is ranked by validation F1 at the training run's fixed
 # θ and γ, which calibration changes next (on the gear shaft it picked epoch 6 of 30)
 fpcc export "$WORK/runs/$NAME/checkpoint_last.pt" --out "$WORK/models/$NAME.onnx" --name "$NAME"
