@@ -20,6 +20,16 @@ FEATURE_NAMES_WITH_NORMALS = FEATURE_NAMES + NORMAL_NAMES
 NORMAL_NEIGHBOURS = 8   # the first columns of the kNN graph: the nearest (knn_near of a dilated one)
 
 
+def feature_names(normals: bool) -> tuple[str, ...]:
+    """The input columns of a network with or without surface normals."""
+    return FEATURE_NAMES_WITH_NORMALS if normals else FEATURE_NAMES
+
+
+def takes_normals(num_features: int) -> bool:
+    """Whether a network with this many input columns takes surface normals."""
+    return num_features == len(FEATURE_NAMES_WITH_NORMALS)
+
+
 def voxel_downsample(xyz: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """One representative input point per occupied voxel.
 
@@ -164,6 +174,14 @@ def block_features(xyz: np.ndarray, part_radius: float,
     if normals_knn is not None:
         columns.append(surface_normals(xyz, normals_knn))
     return np.concatenate(columns, axis=1).astype(np.float32)
+
+
+def block_inputs(xyz: np.ndarray, part_radius: float, k: int, normals: bool = False,
+                 near: int = 0, reach: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """One block's network inputs, (features, knn), from its own kNN graph (:func:`knn_graph`),
+    as training and the model checks build them (the node shares one KD-tree across blocks)."""
+    knn = knn_graph(xyz, k, near=near, reach=reach)
+    return block_features(xyz, part_radius, knn if normals else None), knn
 
 
 def surface_normals(xyz: np.ndarray, knn: np.ndarray) -> np.ndarray:

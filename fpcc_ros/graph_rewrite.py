@@ -46,7 +46,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fpcc_ros.features import FEATURE_NAMES_WITH_NORMALS
+from fpcc_ros.features import takes_normals
 from fpcc_ros.onnx_model import STRIDE_INPUT
 from fpcc_ros.weight_flush import flush_tiny_weights
 
@@ -440,7 +440,7 @@ def sample_blocks(k: int, part_radius: float, sizes=(300, 2500), batch: int = 2,
                   seed: int = 0, normals: bool = False) -> list[dict[str, np.ndarray]]:
     """Network inputs from random points on a few part-sized spheres (real features and kNN;
     with ``normals`` the surface-normal columns too)."""
-    from fpcc_ros.features import block_features, knn_graph
+    from fpcc_ros.features import block_inputs
 
     rng = np.random.default_rng(seed)
     feeds = []
@@ -451,8 +451,8 @@ def sample_blocks(k: int, part_radius: float, sizes=(300, 2500), batch: int = 2,
             dirs = rng.normal(size=(n, 3))
             xyz = centers[rng.integers(0, 6, n)] + part_radius * dirs / np.linalg.norm(
                 dirs, axis=1, keepdims=True)
-            knn = knn_graph(xyz, k)
-            feats.append(block_features(xyz, part_radius, knn if normals else None))
+            features, knn = block_inputs(xyz, part_radius, k, normals)
+            feats.append(features)
             knns.append(knn)
         feeds.append({"features": np.stack(feats), "knn": np.stack(knns)})
     return feeds
@@ -476,7 +476,7 @@ def compare_models(original: bytes, rewritten: bytes, card_path: Path | None = N
     knn_width = shapes.get("knn", [None])[-1]
     if isinstance(knn_width, int):  # the graph itself says k (no card yet at export time)
         k = knn_width
-    normals = shapes.get("features", [None])[-1] == len(FEATURE_NAMES_WITH_NORMALS)
+    normals = takes_normals(shapes.get("features", [None])[-1])
     worst = 0.0
     for feed in sample_blocks(k, radius, normals=normals):
         for x, y in zip(a.run(None, feed), b.run(None, feed)):

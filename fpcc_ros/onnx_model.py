@@ -158,13 +158,12 @@ class FpccModel:
         embedding size passes it whatever the card says), nor a graph that fails only when run;
         without this, such a model would start and then fail every frame.
         """
-        from fpcc_ros.features import block_features, knn_graph
+        from fpcc_ros.features import block_inputs
 
         card, n = self.card, max(4 * self.card.k, 64)
         xyz = np.random.default_rng(0).uniform(0.0, 4.0 * card.part_radius, (n, 3))
-        knn = knn_graph(xyz, card.k)
-        features = block_features(xyz, card.part_radius, knn if card.uses_normals else None)[None]
-        knn = knn[None]
+        features, knn = block_inputs(xyz, card.part_radius, card.k, card.uses_normals)
+        features, knn = features[None], knn[None]
         try:
             embedding, score = self.run(features, knn)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises many unrelated types

@@ -1,7 +1,7 @@
 """Training blocks from scene NPZ files, cut exactly as the runtime cuts them.
 
 Scene -> finite points -> voxel downsample at voxel_factor * part_radius -> spatial blocks of at
-most block_size points -> (block_features, knn_graph) per block, all from fpcc_ros.features, so
+most block_size points -> (block_inputs: features and kNN graph) per block, all from fpcc_ros.features, so
 the network trains on what it will see. Labels follow each voxel's representative point.
 
 Augmentation (training only): a random rotation about the camera z axis (the viewing axis, so
@@ -20,7 +20,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import torch
 
-from fpcc_ros.features import (block_features, dominant_plane, knn_graph, plane_tolerance,
+from fpcc_ros.features import (block_inputs, dominant_plane, plane_tolerance,
                                spatial_blocks, voxel_downsample)
 
 
@@ -140,9 +140,8 @@ def blocks_from_points(xyz: np.ndarray, instance: np.ndarray, center_score: np.n
         if skip_empty and not (inst > 0).any():
             continue
         pts = xyz[idx]
-        knn = knn_graph(pts, k, near=knn_near, reach=knn_reach)
-        blocks.append(Block(features=block_features(pts, part_radius, knn if normals else None),
-                            knn=knn,
+        features, knn = block_inputs(pts, part_radius, k, normals, knn_near, knn_reach)
+        blocks.append(Block(features=features, knn=knn,
                             xyz=pts.astype(np.float32), instance=inst,
                             center_score=center_score[idx].astype(np.float32),
                             part_radius=part_radius, index=idx.astype(np.int64)))

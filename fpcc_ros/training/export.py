@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fpcc_ros.features import FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS, block_features, knn_graph
+from fpcc_ros.features import block_inputs, feature_names, takes_normals
 from fpcc_ros.model_card import ModelCard, card_path_for
 from fpcc_ros.weight_flush import FLUSH_BELOW, TINY as TINY_FLOAT
 from fpcc_ros.training.health import EXPORT_DEAD_SHARE, channel_health, dead_layers, health_line
@@ -125,7 +125,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, part_radius: floa
     last = history[-1] if history else {}
     card = ModelCard(
         name=name or out.stem, k=config.data.k, part_radius=float(part_radius),
-        feature_names=_feature_names(model.config),
+        feature_names=feature_names(model.config.normals),
         knn_near=config.data.knn_near, knn_reach=config.data.knn_reach,
         block_size=int(block_size or config.data.block_size), voxel_factor=config.data.voxel_factor,
         screening_factor=config.screening_factor, score_threshold=config.score_threshold,
@@ -169,16 +169,12 @@ def export_untrained(path: str | Path, k: int = 16, seed: int = 0, part_radius: 
     path = Path(path)
     export_onnx(model, path, k)
     card = ModelCard(name=path.stem, k=k, part_radius=part_radius, block_size=block_size,
-                     feature_names=_feature_names(net),
+                     feature_names=feature_names(net.normals),
                      description="UNTRAINED FPCC-Net for tests: right inputs and outputs, "
                      "meaningless predictions", trained_on={}, training={"untrained": True, "seed": seed,
                                                                          "net": net.to_dict()})
     card.save(card_path_for(path))
     return card
-
-
-def _feature_names(net: NetConfig) -> tuple[str, ...]:
-    return FEATURE_NAMES_WITH_NORMALS if net.normals else FEATURE_NAMES
 
 
 def _example_inputs(batch: int, points: int, k: int, seed: int, part_radius: float = 0.05,
@@ -190,8 +186,8 @@ def _example_inputs(batch: int, points: int, k: int, seed: int, part_radius: flo
         centers = rng.uniform(0, 4 * part_radius, size=(4, 3))
         dirs = rng.normal(size=(points, 3))
         xyz = centers[rng.integers(0, 4, points)] + part_radius * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-        knn = knn_graph(xyz, k)
-        feats.append(block_features(xyz, part_radius, knn if normals else None))
+        features, knn = block_inputs(xyz, part_radius, k, normals)
+        feats.append(features)
         knns.append(knn)
     return torch.from_numpy(np.stack(feats)), torch.from_numpy(np.stack(knns))
 
@@ -205,8 +201,7 @@ def time_onnx(path: str | Path, points: int = 4096, k: int = 16, threads: int = 
     options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     width = {i.name: i.shape for i in session.get_inputs()}["features"][-1]
-    features, knn = _example_inputs(1, points, k, seed=3,
-                                    normals=width == len(FEATURE_NAMES_WITH_NORMALS))
+    features, knn = _example_inputs(1, points, k, seed=3, normals=takes_normals(width))
     feed = {"features": features.numpy(), "knn": knn.numpy()}
     session.run(None, feed)
     times = []

@@ -24,7 +24,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from fpcc_ros.features import FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS
+from fpcc_ros.features import feature_names
 from fpcc_ros.onnx_model import default_model_path
 from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, find_scenes, \
     load_scene, scene_blocks
@@ -258,8 +258,7 @@ class TorchBlockModel:
                               block_size=config.data.block_size,
                               voxel_factor=config.data.voxel_factor,
                               embedding_dim=net.config.embedding_dim,
-                              feature_names=FEATURE_NAMES_WITH_NORMALS if net.config.normals
-                              else FEATURE_NAMES)
+                              feature_names=feature_names(net.config.normals))
 
     @torch.no_grad()
     def run(self, features: np.ndarray, knn: np.ndarray,
@@ -417,8 +416,8 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
         init_state = load_checkpoint(resolve_init(init))
         config = replace(config, net=NetConfig.from_dict(init_state.get("net", {})))
     elif state is None:   # from scratch: the inputs the data settings ask for
-        config = replace(config, net=replace(config.net, in_features=len(
-            FEATURE_NAMES_WITH_NORMALS if config.data.normals else FEATURE_NAMES)))
+        config = replace(config, net=replace(
+            config.net, in_features=len(feature_names(config.data.normals))))
     model = FPCCNet(config.net)
     if init_state is not None:
         model.load_state_dict(init_state["model"])
