@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.fusion import fuse_linear_bn_eval
 
-from fpcc_ros.features import NUM_FEATURES, feature_names, takes_normals
+from fpcc_ros.features import NORMAL_NAMES, NUM_FEATURES, takes_normals
 from fpcc_ros.model_card import EMBEDDING_DIM
 
 
@@ -165,7 +165,7 @@ def with_normal_inputs(model: FPCCNet) -> FPCCNet:
     can be fine-tuned with normals instead of trained again from scratch."""
     if model.config.normals:
         return model
-    c, extra = model.config.in_features, len(feature_names(True)) - NUM_FEATURES
+    c, extra = model.config.in_features, len(NORMAL_NAMES)
     widened = FPCCNet(replace(model.config, in_features=c + extra))
     state = model.state_dict()
     w = state["edge1a.linear.weight"]                      # (e, 2c): [x_i, x_j - x_i]
