@@ -572,14 +572,15 @@ def test_network_output_does_not_depend_on_neighbour_order():
 def test_the_shipped_model_carries_every_rewrite():
     """A re-exported default must go through optimize_file again: without the rewrites the
     node is a third (global max-pool) plus 12-17% (max-first) slower for the same outputs, and
-    its card's global_stride could not be applied."""
+    the node's global_stride parameter could not be applied (the card ships stride 1: the
+    healthy network loses 0.02 F1 on the ring screw at stride 2-4)."""
     from fpcc_ros.graph_rewrite import (METADATA_VALUE, STRIDE_NOTE, add_global_stride,
                                         move_max_before_monotone, rewrite_global_max)
     from fpcc_ros.onnx_model import FpccModel, default_model_path
 
     model = FpccModel(default_model_path())
     assert model.graph_notes == f"{METADATA_VALUE},{STRIDE_NOTE}"
-    assert model.supports_global_stride and model.card.global_stride > 1
+    assert model.supports_global_stride
     shipped = onnx.load(str(default_model_path()))
     assert rewrite_global_max(shipped)[1:] == (0, 0)          # nothing left to rewrite
     assert move_max_before_monotone(shipped)[1] == 0

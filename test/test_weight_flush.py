@@ -10,7 +10,7 @@ from onnx import numpy_helper  # noqa: E402
 
 from fpcc_ros.model_card import card_path_for  # noqa: E402
 from fpcc_ros.onnx_model import FpccModel, default_model_path  # noqa: E402
-from fpcc_ros.weight_flush import count_tiny_weights, flush_tiny_weights  # noqa: E402
+from fpcc_ros.weight_flush import count_tiny_weights, dead_channels, flush_tiny_weights  # noqa: E402
 
 TINY_MODEL = Path(__file__).parent / "data" / "tiny_fpcc.onnx"
 FLOAT32_TINY = np.finfo(np.float32).tiny
@@ -80,6 +80,12 @@ def test_shipped_model_has_no_tiny_weights():
     denormal = sum(int(((w != 0) & (np.abs(w) < FLOAT32_TINY)).sum()) for w in weights.values())
     tiny = sum(int(((w != 0) & (np.abs(w) < 1e-20)).sum()) for w in weights.values())
     assert (denormal, tiny) == (0, 0)
+
+
+def test_shipped_model_has_no_dead_channels():
+    """The collapse of issue 23: the previous default had 892 of its 1024 global channels (and
+    six more matrices) producing a constant; ../shared/tools/model_health.py counts the same."""
+    assert dead_channels(default_model_path().read_bytes()) == {}
 
 
 def test_optimize_file_writes_no_tiny_weights(tmp_path):
