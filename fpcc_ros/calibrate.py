@@ -60,7 +60,8 @@ class _MemoPipeline(Pipeline):
                    image_shape=None):
         cfg = self.config
         key = ("fragments", len(valid_idx), len(floor_free), cfg.effective_voxel_size,
-               cfg.fragment_eps, cfg.fragment_density, cfg.part_radius, image_shape)
+               cfg.fragment_eps, cfg.fragment_density, cfg.fragment_crease, cfg.part_radius,
+               image_shape)
         if key not in self._cache:
             self._cache[key] = super()._fragments(xyz, valid_idx, inverse, floor_free,
                                                   num_network_points, view_axis, image_shape)
@@ -88,6 +89,7 @@ class CalibrationRow:
     fragment_density: int = 20
     fragment_min_points: int = 300
     fragment_join: float = 2.0
+    fragment_crease: float = 0.0
 
     @property
     def f1(self) -> float:
@@ -118,7 +120,8 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
               fragment_eps_values: list[float] | None = None,
               fragment_densities: list[int] | None = None,
               fragment_min_points: list[int] | None = None,
-              fragment_joins: list[float] | None = None) -> list[CalibrationRow]:
+              fragment_joins: list[float] | None = None,
+              fragment_creases: list[float] | None = None) -> list[CalibrationRow]:
     """Instance counts (visible protocol) for every combination, per part (the scenes'
     ``part_name``) and summed over ``scenes``;
     ``screening_factors`` / ``merges`` / ``prototypes`` / ``voxel_factors`` / ``clusterings``
@@ -136,11 +139,13 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
     voxels = voxel_factors or [card.voxel_factor]
     fragment_settings = {
         "paper": [(card.fragment_eps, card.fragment_density, card.fragment_min_points,
-                   card.fragment_join)],
+                   card.fragment_join, card.fragment_crease)],
         "connected": list(itertools.product(fragment_eps_values or [card.fragment_eps],
                                             fragment_densities or [card.fragment_density],
                                             fragment_min_points or [card.fragment_min_points],
-                                            fragment_joins or [card.fragment_join]))}
+                                            fragment_joins or [card.fragment_join],
+                                            fragment_creases if fragment_creases is not None
+                                            else [card.fragment_crease]))}
     modes = [(cl, *f) for cl in (clusterings or [card.clustering]) for f in fragment_settings[cl]]
     rows: dict[tuple, dict[str, InstanceCounts]] = {
         key: {} for key in itertools.product(thresholds, gates, factors, merges, prototypes, voxels,
@@ -160,12 +165,13 @@ def calibrate(model: FpccModel, scenes: list[Path], thresholds: list[float],
         image = scene["points"].shape[:2] if scene["points"].ndim == 3 else None
         part = str(scene["part_name"]) if "part_name" in scene.files else ""
         for key in rows:
-            t, g, f, m, p, v, (cl, fr, fd, fm, fj) = key
+            t, g, f, m, p, v, (cl, fr, fd, fm, fj, fc) = key
             cfg = PipelineConfig.from_card(model.card, part_radius=radius, score_threshold=t,
                                            feature_gate=g, screening_factor=f, center_merge=m,
                                            center_prototype=p, voxel_factor=v, clustering=cl,
                                            fragment_eps=fr, fragment_density=fd,
-                                           fragment_min_points=fm, fragment_join=fj)
+                                           fragment_min_points=fm, fragment_join=fj,
+                                           fragment_crease=fc)
             labels = _MemoPipeline(memo, cfg, inputs).segment(xyz, image).labels
             per_part = rows[key]
             per_part[part] = per_part.get(part, InstanceCounts()) + \
@@ -181,8 +187,9 @@ SWEPT_SETTINGS = (("score_threshold", "--thresholds"), ("feature_gate", "--gates
                   ("clustering", "--clusterings"), ("fragment_eps", "--fragment-eps"),
                   ("fragment_density", "--fragment-densities"),
                   ("fragment_min_points", "--fragment-min-points"),
-                  ("fragment_join", "--fragment-joins"))
-OFF_AT_ZERO = ("center_merge", "center_prototype")   # 0 = the step is off
+                  ("fragment_join", "--fragment-joins"),
+                  ("fragment_crease", "--fragment-creases"))
+OFF_AT_ZERO = ("center_merge", "center_prototype", "fragment_crease")   # 0 = the step is off
 
 
 def settings_on_grid_edge(rows: list[CalibrationRow], best: CalibrationRow

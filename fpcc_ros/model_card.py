@@ -17,6 +17,7 @@ CARD_FORMAT = "fpcc_ros/model-card/1"
 EMBEDDING_DIM = 128
 CLUSTERINGS = ("paper", "connected")   # the pipeline's clustering modes
 MAX_GLOBAL_STRIDE = 16   # beyond 8 the shipped net already lost 2.6 F1 points (README)
+MAX_FRAGMENT_CREASE = 1000.0   # 1/m: a 1 mm radius; sharper than any fold a depth camera resolves
 
 
 class ModelCardError(ValueError):
@@ -46,6 +47,8 @@ class ModelCard:
     fragment_density: int = 20     # connected: DBSCAN min_samples in input points
     fragment_min_points: int = 300  # connected: smallest instance, input points
     fragment_join: float = 2.0     # connected: a center's pieces join within this diagonal (d_max)
+    fragment_crease: float = 0.0   # connected, organized clouds: cut concave creases sharper than
+    #   this curvature (1/m; fragments.concave_creases); 0 = off
     feature_names: tuple[str, ...] = FEATURE_NAMES
     description: str = ""
     trained_on: dict[str, Any] = field(default_factory=dict)
@@ -165,6 +168,9 @@ def _check_values(card: ModelCard, path: Path) -> None:
          and card.fragment_min_points >= 1, "an integer >= 1 (input points)"),
         ("fragment_join", card.fragment_join,
          _number(card.fragment_join) and 0 <= card.fragment_join <= 4, "between 0 and 4 part radii"),
+        ("fragment_crease", card.fragment_crease,
+         _number(card.fragment_crease) and 0 <= card.fragment_crease <= MAX_FRAGMENT_CREASE,
+         f"a curvature in 1/m between 0 (off) and {MAX_FRAGMENT_CREASE:g}"),
         ("feature_names", card.feature_names,
          card.feature_names in (FEATURE_NAMES, FEATURE_NAMES_WITH_NORMALS),
          f"{list(FEATURE_NAMES)} or, for a model trained with normals, "

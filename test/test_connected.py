@@ -176,6 +176,26 @@ def test_clustering_settings_are_validated():
         PipelineConfig(part_radius=0.05, fragment_eps=0.0).validate()
     with pytest.raises(ConfigError, match="fragment_density"):
         PipelineConfig(part_radius=0.05, fragment_density=0).validate()
+    for bad in (-1.0, 5000.0, float("nan")):
+        with pytest.raises(ConfigError, match="fragment_crease"):
+            PipelineConfig(part_radius=0.05, fragment_crease=bad).validate()
+
+
+def test_a_card_with_a_bad_crease_curvature_is_refused(tmp_path):
+    import json
+    import shutil
+
+    from fpcc_ros.model_card import ModelCardError, card_path_for, load_card
+
+    card = json.loads(card_path_for(TINY_MODEL).read_text())
+    assert load_card(card_path_for(TINY_MODEL)).fragment_crease == 0.0   # older cards: off
+    shutil.copy(TINY_MODEL, tmp_path / "m.onnx")
+    path = card_path_for(tmp_path / "m.onnx")
+    path.write_text(json.dumps({**card, "fragment_crease": 60}))
+    assert load_card(path).fragment_crease == 60
+    path.write_text(json.dumps({**card, "fragment_crease": -5}))
+    with pytest.raises(ModelCardError, match="fragment_crease=-5 is invalid"):
+        load_card(path)
 
 
 def test_calibration_sweeps_fragment_settings_for_the_connected_clustering_only(tmp_path):
@@ -194,6 +214,11 @@ def test_calibration_sweeps_fragment_settings_for_the_connected_clustering_only(
     card = FpccModel(TINY_MODEL, threads=1).card
     assert modes == [("connected", 0.005), ("connected", 0.01), ("paper", card.fragment_eps)]
     assert all(r.counts.ground_truths == 2 for r in rows)
+    rows = calibrate(FpccModel(TINY_MODEL, threads=1), [path], [0.3], [1.0], merges=[0.0],
+                     prototypes=[0.0], clusterings=["paper", "connected"],
+                     fragment_min_points=[100], fragment_creases=[0.0, 60.0])
+    assert sorted((r.clustering, r.fragment_crease) for r in rows) == \
+        [("connected", 0.0), ("connected", 60.0), ("paper", card.fragment_crease)]
 
 
 def test_the_oracle_on_an_organized_cloud_uses_pixel_fragments(monkeypatch):
@@ -227,6 +252,12 @@ def test_the_oracle_on_an_organized_cloud_uses_pixel_fragments(monkeypatch):
     labels = result.labels
     assert calls == [(h, w)]
     assert len(set(labels[instance > 0])) == 3 and 0 not in set(labels[instance > 0])
+    creases = []
+    monkeypatch.setattr(pipeline_module, "pixel_fragments",
+                        lambda *a, **k: creases.append(k["crease"]) or real(*a, **k))
+    flat_faces = OraclePipeline(Pipeline(model, cfg.replace(fragment_crease=60.0)), instance,
+                                score).segment(xyz, (h, w)).labels
+    assert creases == [60.0] and (flat_faces == labels).all()   # flat faces: nothing to cut
     for i in (1, 2, 3):
         assert len(set(labels[instance == i])) == 1
     assert (labels[instance == 0] == 0).all()

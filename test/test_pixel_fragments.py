@@ -2,7 +2,7 @@
 clouds: a camera at the origin looking along +z, 2 mm between pixels."""
 import numpy as np
 
-from fpcc_ros.fragments import pixel_fragments
+from fpcc_ros.fragments import CREASE_CURVATURE, pixel_fragments
 
 PITCH = 0.002
 EPS = 0.009
@@ -17,11 +17,11 @@ def image(depth: np.ndarray) -> np.ndarray:
     return xyz.reshape(-1, 3)
 
 
-def fragments(depth: np.ndarray) -> np.ndarray:
+def fragments(depth: np.ndarray, crease: float = 0.0) -> np.ndarray:
     xyz = image(depth)
     pixels = np.flatnonzero(np.isfinite(xyz).all(axis=1))
     out = np.zeros(len(xyz), np.int64)
-    out[pixels] = pixel_fragments(xyz, pixels, depth.shape, EPS)
+    out[pixels] = pixel_fragments(xyz, pixels, depth.shape, EPS, crease=crease)
     return out.reshape(depth.shape)
 
 
@@ -81,3 +81,46 @@ def test_world_frame_depth_axis_picks_the_nearer_side():
     labels = pixel_fragments(world, pixels, depth.shape, EPS, depth_axis=2,
                              depth_sign=-1.0).reshape(depth.shape)
     assert (labels[:, 14] == labels[0, 0]).all() and labels[0, 0] != labels[0, 20]
+
+
+def two_shafts(noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Depth of two 15 mm shafts lying side by side along the image columns, touching: a
+    valley between them that no xyz link distance separates (neighbour steps under 9 mm). The
+    first and last 4 rows have no return (the floor removed), so the valley ends at a hole."""
+    h, w = 24, 40
+    x = (np.arange(w) + 0.5) * PITCH
+    tops = [0.80 - np.sqrt(np.clip(0.015 ** 2 - (x - cx) ** 2, 0.0, None))
+            for cx in (0.02, 0.05)]
+    depth = np.tile(np.minimum(*tops), (h, 1))
+    depth[:4] = depth[-4:] = np.nan
+    return depth + np.random.default_rng(seed).normal(0.0, noise, depth.shape)
+
+
+def test_touching_shafts_are_cut_at_their_concave_valley():
+    depth = two_shafts()
+    xyz = image(depth)
+    pixels = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    assert len(np.unique(pixel_fragments(xyz, pixels, depth.shape, EPS))) == 1   # crease off
+    labels = fragments(depth, CREASE_CURVATURE)
+    left, right = labels[5:-5, 3:14], labels[5:-5, 21:32]   # each shaft, away from the valley
+    assert len(np.unique(left)) == 1 and len(np.unique(right)) == 1
+    assert left[0, 0] != right[0, 0] and min(left[0, 0], right[0, 0]) > 0
+
+
+def test_convex_and_noisy_surfaces_are_not_cut():
+    shaft = np.tile(0.80 - np.sqrt(np.clip(0.015 ** 2 - ((np.arange(15) + 0.5) * PITCH - 0.015)
+                                           ** 2, 0.0, None)), (24, 1))
+    assert set(np.unique(fragments(shaft, CREASE_CURVATURE))) == {1}   # one shaft's top: convex
+    noisy = 0.80 + np.random.default_rng(3).normal(0.0, 0.0003, (40, 60))
+    assert set(np.unique(fragments(noisy, CREASE_CURVATURE))) == {1}   # a plane, 0.3 mm noise
+
+
+def test_creases_are_found_in_a_z_up_world_frame_too():
+    depth = two_shafts(noise=0.0002, seed=1)
+    world = image(depth) * np.array([1.0, -1.0, -1.0], np.float32)   # camera above: depth -z
+    pixels = np.flatnonzero(np.isfinite(world).all(axis=1))
+    labels = np.zeros(len(world), np.int64)
+    labels[pixels] = pixel_fragments(world, pixels, depth.shape, EPS, depth_axis=2,
+                                     depth_sign=-1.0, crease=CREASE_CURVATURE)
+    labels = labels.reshape(depth.shape)
+    assert labels[10, 5] != labels[10, 30] and min(labels[10, 5], labels[10, 30]) > 0

@@ -41,6 +41,9 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fragment-join", type=float, default=None,
                        help="connected: a center's fragments join within a box of this "
                        "diagonal, part radii (2 = a whole part)")
+    group.add_argument("--fragment-crease", type=float, default=None,
+                       help="connected, organized clouds: cut pixels on concave creases sharper "
+                       "than this curvature, 1/m (where touching parts meet; 0 = off)")
     group.add_argument("--view-axis", default=None, choices=VIEW_AXES,
                        help="the direction the camera looks along in the cloud's frame: +z for a "
                        "camera optical frame (synth scenes), -z for a z-up world/base frame "
@@ -69,7 +72,7 @@ def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ("part_radius", "screening_factor", "score_threshold", "min_points", "voxel_size",
              "feature_gate", "center_merge", "center_prototype", "roi_min",
              "roi_max", "view_axis", "global_stride", "clustering", "fragment_eps",
-             "fragment_density", "fragment_min_points", "fragment_join")
+             "fragment_density", "fragment_min_points", "fragment_join", "fragment_crease")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

@@ -55,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="connected: a center's fragments join when together within a box "
                         "of this diagonal, part radii (2 = a whole part; the shipped network "
                         "wants 1.2)")
+    parser.add_argument("--fragment-creases", type=float, nargs="+", default=None, metavar="C",
+                        help="connected, organized clouds: concave-crease cut curvatures to "
+                        "try, 1/m (0 = off; e.g. 0 60; default: the card's)")
     parser.add_argument("--objective", choices=("part-mean", "pooled"), default="part-mean",
                         help="what the best combination maximises: the mean over parts of each "
                         "part's F1 (scenes grouped by their part_name; every part counts once), "
@@ -98,17 +101,19 @@ def run(args: argparse.Namespace) -> int:
                      clusterings=args.clusterings, fragment_eps_values=args.fragment_eps_values,
                      fragment_densities=args.fragment_densities,
                      fragment_min_points=args.fragment_min_points,
-                     fragment_joins=args.fragment_joins)
+                     fragment_joins=args.fragment_joins,
+                     fragment_creases=args.fragment_creases)
     rows.sort(key=lambda r: -r.score(args.objective))
     parts = len(rows[0].part_counts) or 1
     print(f"{'theta':>6} {'gate':>6} {'gamma':>6} {'merge':>6} {'proto':>6} {'voxel':>6} "
-          f"{'cluster':>9} {'eps mm':>6} {'dens':>4} {'fmin':>4} {'join':>4} "
+          f"{'cluster':>9} {'eps mm':>6} {'dens':>4} {'fmin':>4} {'join':>4} {'crease':>6} "
           f"{'P':>6} {'R':>6} {'F1':>6} {'partF1':>6}")
     for r in rows[:15]:
         print(f"{r.score_threshold:>6.2f} {r.feature_gate:>6.2f} {r.screening_factor:>6.2f} "
               f"{r.center_merge:>6.2f} {r.center_prototype:>6.2f} {r.voxel_factor:>6.3f} "
               f"{r.clustering:>9} {r.fragment_eps * 1e3:>6.1f} {r.fragment_density:>4} "
-              f"{r.fragment_min_points:>4} {r.fragment_join:>4.1f} {r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
+              f"{r.fragment_min_points:>4} {r.fragment_join:>4.1f} {r.fragment_crease:>6.0f} "
+              f"{r.counts.precision:>6.3f} {r.counts.recall:>6.3f} {r.f1:>6.3f} "
               f"{r.part_mean_f1:>6.3f}")
     best = rows[0]
     chosen = {name: getattr(best, name) for name, _ in SWEPT_SETTINGS}
