@@ -389,8 +389,10 @@ class Pipeline:
         if image_shape is not None and image_shape[0] > 1 and \
                 image_shape[0] * image_shape[1] == len(xyz):
             pixels = np.take(valid_idx, rows)
+            # a fragment that fits in a part (connect_fragments' rule) keeps its creases
             fragment = pixel_fragments(xyz, pixels, image_shape, PIXEL_LINK * eps,
-                                       *depth_axis(view_axis), crease=cfg.fragment_crease)
+                                       *depth_axis(view_axis), crease=cfg.fragment_crease,
+                                       whole_diagonal=2.0 * cfg.part_radius)
             return (rows, np.arange(len(rows)), np.take(xyz, pixels, axis=0), np.ones(len(rows)),
                     fragment)
         grid_inverse, grid_xyz, weights = _fragment_points(xyz, np.take(valid_idx, rows),

@@ -124,3 +124,16 @@ def test_creases_are_found_in_a_z_up_world_frame_too():
                                      depth_sign=-1.0, crease=CREASE_CURVATURE)
     labels = labels.reshape(depth.shape)
     assert labels[10, 5] != labels[10, 30] and min(labels[10, 5], labels[10, 30]) > 0
+
+
+def test_a_fragment_that_fits_in_one_part_keeps_its_creases():
+    depth = two_shafts()   # 80 x 32 mm, 15 mm deep: a diagonal of ~88 mm
+    xyz = image(depth)
+    pixels = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    whole = pixel_fragments(xyz, pixels, depth.shape, EPS, crease=CREASE_CURVATURE,
+                            whole_diagonal=0.10)
+    assert set(np.unique(whole)) == {1}          # fits a 100 mm part: its valley is the part's
+    cut = pixel_fragments(xyz, pixels, depth.shape, EPS, crease=CREASE_CURVATURE,
+                          whole_diagonal=0.05)
+    cut = np.bincount(cut)[1:]
+    assert len(cut) == 2 and cut.min() > 100     # larger than a 50 mm part: two shafts, ids 1, 2
