@@ -31,7 +31,9 @@ fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME"
 # the last checkpoint, not "best": best is ranked by validation F1 at the training run's fixed
 # θ and γ, which calibration changes next (on the gear shaft it picked epoch 6 of 30)
 fpcc export "$WORK/runs/$NAME/checkpoint_last.pt" --out "$WORK/models/$NAME.onnx" --name "$NAME"
-fpcc calibrate "$WORK/models/$NAME.onnx" --data "$D/val" --write
+# concave creases cut or not (the exported card starts with them off): on the gear shaft, test
+# piles F1 0.659 with them cut at 120 against 0.636 uncut at the calibrated settings (2026-12-05)
+fpcc calibrate "$WORK/models/$NAME.onnx" --data "$D/val" --fragment-creases 0 120 --write
 if [ -n "$TEST" ]; then
   fpcc eval --data "$TEST" --model "$WORK/models/$NAME.onnx" --protocol both \
             --out "$WORK/eval_$NAME.json"
