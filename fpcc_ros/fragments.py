@@ -47,6 +47,9 @@ CREASE_SMOOTH = 3
 # A fragment's extent, to tell whether it fits in a part, from every 2nd pixel row and column:
 # off by at most two pixel pitches (2-4 mm against parts of tens of mm), a quarter of the work
 WHOLE_STRIDE = 2
+# pixels from a crease to the farthest pixel its measurement reads: the pair's half distance
+# (CREASE_STEP), the tangent's (CREASE_STEP) and the smoothing window's radius
+CREASE_REACH = 2 * CREASE_STEP + CREASE_SMOOTH // 2
 
 
 def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int, int],
@@ -81,20 +84,10 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
     linked[:, 1:] |= right
     linked[:-1] |= down
     linked[1:] |= down
-    creased = None
-    if crease > 0:
-        # within the box around the linked pixels only (the tote, not the floor around it),
-        # with a margin for the differences, so that its edge rows are measured too
-        rows, cols = np.flatnonzero(linked.any(axis=1)), np.flatnonzero(linked.any(axis=0))
-        if len(rows) and len(cols):
-            m = 2 * CREASE_STEP
-            box = np.s_[max(rows[0] - m, 0):rows[-1] + m + 1, max(cols[0] - m, 0):cols[-1] + m + 1]
-            creased = np.zeros_like(cut)
-            creased[box] = concave_creases(planes[(slice(None),) + box], member[box], crease,
-                                           eps, depth_axis, depth_sign)
     core, _ = ndimage.label(linked & ~cut)
-    if creased is not None:
-        core = _cut_at_creases(core, creased, planes, whole_diagonal)
+    if crease > 0:
+        core = _cut_at_creases(core, planes, member, crease, eps, depth_axis, depth_sign,
+                               whole_diagonal)
     fragment = core.reshape(-1)
     # border pixels (linked, but cut at a jump): the fragment of a linked core neighbour
     border = np.flatnonzero(linked.reshape(-1) & (fragment == 0))
@@ -102,26 +95,29 @@ def pixel_fragments(xyz: np.ndarray, pixels: np.ndarray, image_shape: tuple[int,
     return fragment[pixels]
 
 
-def _cut_at_creases(core: np.ndarray, creased: np.ndarray, planes: np.ndarray,
+def _cut_at_creases(core: np.ndarray, planes: np.ndarray, member: np.ndarray,
+                    crease: float, eps: float, depth_axis: int, depth_sign: float,
                     whole_diagonal: float) -> np.ndarray:
-    """``core`` (labels of the core components) cut along the ``creased`` pixels, except in
-    the components that fit in a box of diagonal ``whole_diagonal``; labels consecutive."""
-    cut_core, k_cut = ndimage.label((core > 0) & ~creased)
-    if whole_diagonal <= 0:
-        return cut_core
-    k = int(core.max())
-    creased_component = np.zeros(k + 1, bool)
-    creased_component[core[creased]] = True
-    creased_component[0] = False
-    components, diagonals = _diagonals_on_grid(core, planes, creased_component)
-    whole = np.zeros(k + 1, bool)
-    whole[components] = diagonals <= whole_diagonal
-    out = np.where(whole[core], core + k_cut, cut_core)
-    used = np.bincount(out.reshape(-1), minlength=k + k_cut + 1) > 0
-    used[0] = False
-    consecutive = np.cumsum(used).astype(np.int32)
-    consecutive[0] = 0
-    return consecutive[out]
+    """``core`` (labels of the core components) relabelled after cutting the components larger
+    than a box of diagonal ``whole_diagonal`` (all of them at 0) along their concave creases.
+    The creases are measured only in the box around those components (with the filters'
+    reach as margin): on a sparse scene often nothing, on a full tote most of the image."""
+    large = np.ones(int(core.max()) + 1, bool)
+    large[0] = False
+    if whole_diagonal > 0:
+        components, diagonals = _diagonals_on_grid(core, planes, large)
+        large[components] = diagonals > whole_diagonal
+    in_large = large[core]
+    rows, cols = np.flatnonzero(in_large.any(axis=1)), np.flatnonzero(in_large.any(axis=0))
+    if len(rows) == 0:
+        return core
+    m = CREASE_REACH
+    box = np.s_[max(rows[0] - m, 0):rows[-1] + m + 1, max(cols[0] - m, 0):cols[-1] + m + 1]
+    creased = np.zeros(core.shape, bool)
+    creased[box] = concave_creases(planes[(slice(None),) + box], member[box], crease, eps,
+                                   depth_axis, depth_sign)
+    creased &= in_large
+    return ndimage.label((core > 0) & ~creased)[0]
 
 
 def _diagonals_on_grid(labels: np.ndarray, planes: np.ndarray, wanted: np.ndarray,
