@@ -67,23 +67,39 @@ def test_a_part_cut_by_an_occluder_is_joined_through_its_center():
 
 
 def test_a_fragment_without_a_center_is_kept_when_big_enough_else_dropped():
-    claimed = square(0.0, n=6)                   # 36 points, center 1
+    claimed = square(0.0, n=6)                   # 36 points, center 1; diagonal 0.71
     big = square(2.0, n=6)                       # 36 points, no center
-    small = square(4.0, n=3)                     # 9 points, no center
+    small = square(4.0, n=5)                     # 25 points, no center; diagonal 0.57 >= 0.6 x 0.71
     wall = np.c_[np.arange(40) * STEP, np.full(40, 6.0), np.zeros(40)]  # 3.9 long: no part
     xyz = np.vstack([claimed, big, small, wall])
     labels = np.r_[np.ones(len(claimed), int), np.zeros(len(big) + len(small) + len(wall), int)]
-    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 20)
+    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 30)
     a, b, c = len(claimed), len(claimed) + len(big), len(claimed) + len(big) + len(small)
     assert (out[:a] == 1).all()
     assert (out[a:b] == 2).all()                 # center labels 1..1, then the kept leftover
-    assert (out[b:c] == 0).all()                 # 9 < 20 points
+    assert (out[b:c] == 0).all()                 # 25 < 30 points
     assert (out[c:] == 0).all()                  # 40 points, but longer than 2 d_max
-    # counted in input points: the small square's 9 rows standing for 3 points each are 27
+    # counted in input points: the small square's 25 rows standing for 2 points each are 50
     weights = np.ones(len(xyz))
-    weights[b:c] = 3
-    out = connect_fragments(labels, fragments(xyz), weights, xyz, D_MAX, 20)
+    weights[b:c] = 2
+    out = connect_fragments(labels, fragments(xyz), weights, xyz, D_MAX, 30)
     assert (out[b:c] == 3).all()
+
+
+def test_a_fragment_without_a_center_much_shorter_than_the_parts_found_is_a_piece():
+    # center 1 found a 1.0 x 1.0 part (diagonal 1.41); two unclaimed fragments with enough
+    # points: 0.7 x 0.7 (diagonal 0.99, at least 0.6 x 1.41 = 0.85: a part of its own) and
+    # 0.5 x 0.5 (diagonal 0.71 < 0.85: a piece cut off a part, dropped)
+    found, whole, piece = square(0.0), square(2.0, n=8), square(4.0, n=6)
+    xyz = np.vstack([found, whole, piece])
+    labels = np.r_[np.ones(len(found), int), np.zeros(len(whole) + len(piece), int)]
+    out = connect_fragments(labels, fragments(xyz), np.ones(len(xyz)), xyz, D_MAX, 20)
+    a, b = len(found), len(found) + len(whole)
+    assert (out[:a] == 1).all() and (out[a:b] == 2).all() and (out[b:] == 0).all()
+    # with no center in the frame there is nothing to compare with: both are parts
+    out = connect_fragments(np.zeros(len(xyz), int), fragments(xyz), np.ones(len(xyz)), xyz,
+                            D_MAX, 20)
+    assert (out[:a] == 1).all() and (out[a:b] == 2).all() and (out[b:] == 3).all()
 
 
 def test_a_stray_label_does_not_join_two_parts():
