@@ -462,10 +462,10 @@ def connect_fragments(labels: np.ndarray, fragment: np.ndarray, weights: np.ndar
 
 def _median_instance_diagonal(out: np.ndarray, pts: np.ndarray, c: int) -> float:
     """Median bounding-box diagonal of the instances 1..c in ``out`` (0 when there are none)."""
-    found = out > 0
-    if not found.any():
+    present = np.bincount(out, minlength=c + 1)[1:] > 0
+    if not present.any():
         return 0.0
-    return float(np.median(_diagonals(pts[found], out[found], c)[np.unique(out[found])]))
+    return float(np.median(_diagonals(pts, out, c)[1:][present]))
 
 
 def _largest_piece_when_spread(out: np.ndarray, fragment: np.ndarray, w: np.ndarray,
