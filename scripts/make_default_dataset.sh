@@ -10,6 +10,8 @@
 # scenes, so the validation set stays the one the first set made.
 #   first set (sessions 1-7): scripts/make_default_dataset.sh /work/data_default 7 6
 #   second set (session 8):   scripts/make_default_dataset.sh /work/data_default 7 12 6 200000
+#   third set (session 27):   scripts/make_default_dataset.sh /work/data_default2 2 10 18 300000
+#     (its scene seeds overlap the second set's upper half, for other parts and draws)
 set -euo pipefail
 OUT=${1:?output folder}
 PER=${2:-7}
