@@ -12,6 +12,8 @@
 #   second set (session 8):   scripts/make_default_dataset.sh /work/data_default 7 12 6 200000
 #   third set (session 27):   scripts/make_default_dataset.sh /work/data_default2 2 10 18 300000
 #     (its scene seeds overlap the second set's upper half, for other parts and draws)
+#   fourth set (session 28):  scripts/make_default_dataset.sh /work/data_default3 2 10 28 600000
+#     (14 min with 2 workers on a 2-vCPU AMD EPYC; scene seeds 600000-739000)
 set -euo pipefail
 OUT=${1:?output folder}
 PER=${2:-7}
