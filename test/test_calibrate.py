@@ -211,3 +211,61 @@ def test_cli_tries_both_clusterings_unless_told(tmp_path, capsys):
 
     assert modes_tried() == {"paper", "connected"}
     assert modes_tried("--clusterings", "paper") == {"paper"}
+
+
+def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
+    """The second pass copies every setting of the best *connected* row (not the best row
+    overall, here a paper one) and changes only the fragment radius, skipping the one tried."""
+    from fpcc_ros.calibrate import CalibrationRow, refine_fragment_eps
+    from fpcc_ros.metrics import InstanceCounts
+
+    scene = tmp_path / "a.npz"
+    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
+    model = FpccModel(TINY_MODEL, threads=1)
+
+    def row(f1_hits: int, clustering: str, threshold: float, **settings) -> CalibrationRow:
+        return CalibrationRow(threshold, 1.0, InstanceCounts(f1_hits, 10, 10),
+                              clustering=clustering, fragment_eps=0.006, **settings)
+
+    grid = [row(9, "paper", 0.3),
+            row(4, "connected", 0.3, screening_factor=0.5),
+            row(7, "connected", 0.5, screening_factor=0.7, center_merge=0.5,
+                center_prototype=0.3, fragment_density=5, fragment_join=1.2,
+                fragment_crease=60.0),
+            row(6, "connected", 0.4)]
+    rows = refine_fragment_eps(model, [scene], grid, "part-mean", eps_values=(0.004, 0.006, 0.02))
+    assert rows[:4] == grid
+    added = rows[4:]
+    assert sorted(r.fragment_eps for r in added) == [0.004, 0.02]
+    for r in added:
+        assert (r.clustering, r.score_threshold, r.feature_gate, r.screening_factor,
+                r.center_merge, r.center_prototype, r.fragment_density, r.fragment_join,
+                r.fragment_crease) == ("connected", 0.5, 1.0, 0.7, 0.5, 0.3, 5, 1.2, 60.0)
+        assert r.counts.ground_truths == 3   # scored on the scene, not copied
+    # nothing connected: nothing to refine
+    assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
+
+
+def test_cli_refines_the_fragment_radius_unless_radii_are_given(tmp_path, capsys):
+    import shutil
+
+    from fpcc_ros.calibrate import REFINE_FRAGMENT_EPS
+    from fpcc_ros.cli import main as fpcc
+
+    for suffix in (".onnx", ".json"):
+        shutil.copy(TINY_MODEL.with_suffix(suffix), tmp_path / f"m{suffix}")
+    (tmp_path / "val").mkdir()
+    write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
+    one_setting = ["--thresholds", "0.4", "--gates", "1.0", "--screening", "0.7", "--merges",
+                   "0", "--prototypes", "0"]
+
+    def radii_tried(*extra: str) -> list[float]:
+        assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
+                     *one_setting, *extra]) == 0
+        table = capsys.readouterr().out.split("best (")[0].splitlines()
+        return sorted(float(line.split()[7]) for line in table
+                      if len(line.split()) > 7 and line.split()[6] == "connected")
+
+    assert radii_tried() == [e * 1e3 for e in REFINE_FRAGMENT_EPS]   # the card's 6 mm among them
+    assert radii_tried("--fragment-eps", "0.008") == [8.0]
+    assert radii_tried("--clusterings", "paper") == []
