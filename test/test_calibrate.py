@@ -2,6 +2,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import fpcc_ros.pipeline as pipeline_module
 from fpcc_ros.calibrate import calibrate
@@ -189,9 +190,10 @@ def test_cli_says_when_the_best_setting_is_on_the_grids_edge(tmp_path, capsys):
     assert "--thresholds" not in out.split("best (")[1]
 
 
-def test_cli_tries_both_clusterings_unless_told(tmp_path, capsys):
-    """A freshly exported card says clustering "paper"; calibrating that mode alone left the
-    connected clustering (0.619 against 0.535 test F1 for a gear-shaft fine-tune) untried."""
+@pytest.fixture
+def table_of_one_setting(tmp_path, capsys):
+    """Runs `fpcc calibrate` on a copy of the tiny model with one network setting (θ, gate, γ,
+    merge, prototype) and the extra options given; returns the printed table's rows, split."""
     import shutil
 
     from fpcc_ros.cli import main as fpcc
@@ -203,14 +205,19 @@ def test_cli_tries_both_clusterings_unless_told(tmp_path, capsys):
     one_setting = ["--thresholds", "0.4", "--gates", "1.0", "--screening", "0.7", "--merges",
                    "0", "--prototypes", "0"]
 
-    def modes_tried(*extra: str) -> set[str]:
+    def run(*extra: str) -> list[list[str]]:
         assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
                      *one_setting, *extra]) == 0
         table = capsys.readouterr().out.split("best (")[0].splitlines()[1:]
-        return {line.split()[6] for line in table if line.strip()}
+        return [line.split() for line in table if line.strip()]
+    return run
 
-    assert modes_tried() == {"paper", "connected"}
-    assert modes_tried("--clusterings", "paper") == {"paper"}
+
+def test_cli_tries_both_clusterings_unless_told(table_of_one_setting):
+    """A freshly exported card says clustering "paper"; calibrating that mode alone left the
+    connected clustering (0.619 against 0.535 test F1 for a gear-shaft fine-tune) untried."""
+    assert {row[6] for row in table_of_one_setting()} == {"paper", "connected"}
+    assert {row[6] for row in table_of_one_setting("--clusterings", "paper")} == {"paper"}
 
 
 def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
@@ -246,25 +253,12 @@ def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
     assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
 
 
-def test_cli_refines_the_fragment_radius_unless_radii_are_given(tmp_path, capsys):
-    import shutil
-
+def test_cli_refines_the_fragment_radius_unless_radii_are_given(table_of_one_setting):
     from fpcc_ros.calibrate import REFINE_FRAGMENT_EPS
-    from fpcc_ros.cli import main as fpcc
-
-    for suffix in (".onnx", ".json"):
-        shutil.copy(TINY_MODEL.with_suffix(suffix), tmp_path / f"m{suffix}")
-    (tmp_path / "val").mkdir()
-    write_scene(tmp_path / "val" / "a.npz", ROW, extra=FLOOR, part_radius=0.05)
-    one_setting = ["--thresholds", "0.4", "--gates", "1.0", "--screening", "0.7", "--merges",
-                   "0", "--prototypes", "0"]
 
     def radii_tried(*extra: str) -> list[float]:
-        assert fpcc(["calibrate", str(tmp_path / "m.onnx"), "--data", str(tmp_path / "val"),
-                     *one_setting, *extra]) == 0
-        table = capsys.readouterr().out.split("best (")[0].splitlines()
-        return sorted(float(line.split()[7]) for line in table
-                      if len(line.split()) > 7 and line.split()[6] == "connected")
+        return sorted(float(row[7]) for row in table_of_one_setting(*extra)
+                      if row[6] == "connected")
 
     assert radii_tried() == [e * 1e3 for e in REFINE_FRAGMENT_EPS]   # the card's 6 mm among them
     assert radii_tried("--fragment-eps", "0.008") == [8.0]
