@@ -66,6 +66,25 @@ def test_a_part_cut_by_an_occluder_is_joined_through_its_center():
     assert (out[len(piece_a) + len(piece_b):] == 2).all()
 
 
+def test_a_round_part_whose_box_diagonal_exceeds_two_d_max_is_still_one_part():
+    # a disc of radius 0.75 (diameter 1.5 < 2 d_max = 1.6, box diagonal 2.1 > 1.6: the ring
+    # screw's case), labelled by center 1 except a strip that center 2's votes took; center 2
+    # has its own part far away. The disc fits in a part, so all of it is center 1's, and
+    # center 2 keeps its own square
+    g = np.arange(-0.75, 0.76, STEP)
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    inside = gx ** 2 + gy ** 2 <= 0.75 ** 2 + 1e-9
+    disc = np.c_[gx[inside], gy[inside], np.zeros(inside.sum())]
+    other = square(5.0, n=6)
+    xyz = np.vstack([disc, other])
+    frag = fragments(xyz)
+    assert len(set(frag)) == 2
+    labels = np.r_[np.where(disc[:, 0] < -0.3, 2, 1), np.full(len(other), 2)]
+    out = connect_fragments(labels, frag, np.ones(len(xyz)), xyz, D_MAX, 10)
+    assert (out[:len(disc)] == 1).all()
+    assert (out[len(disc):] == 2).all()
+
+
 def test_a_fragment_without_a_center_is_kept_when_big_enough_else_dropped():
     claimed = square(0.0, n=6)                   # 36 points, center 1; diagonal 0.71
     big = square(2.0, n=6)                       # 36 points, no center
