@@ -17,7 +17,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from fpcc_ros.extent import fit_within
+from fpcc_ros.extent import box_diagonals, fit_within
 
 
 def assign_to_centers(xyz: np.ndarray, embedding: np.ndarray, centers: np.ndarray,
@@ -461,7 +461,7 @@ def connect_fragments(labels: np.ndarray, fragment: np.ndarray, weights: np.ndar
     keep = np.flatnonzero(left_size >= max(min_points, 1))
     keep = keep[keep > 0]
     if len(keep):
-        diag = _diagonals(pts[left], fragment[left], k)[keep]
+        diag = box_diagonals(pts[left], fragment[left], k)[keep]
         keep = keep[(diag <= LEFTOVER_FIT * d_max)
                     & (diag >= LEFTOVER_SHARE * _median_instance_diagonal(out, pts, c))]
         new_id = np.zeros(k + 1, np.int32)
@@ -475,7 +475,7 @@ def _median_instance_diagonal(out: np.ndarray, pts: np.ndarray, c: int) -> float
     present = np.bincount(out, minlength=c + 1)[1:] > 0
     if not present.any():
         return 0.0
-    return float(np.median(_diagonals(pts, out, c)[1:][present]))
+    return float(np.median(box_diagonals(pts, out, c)[1:][present]))
 
 
 def _largest_piece_when_spread(out: np.ndarray, fragment: np.ndarray, w: np.ndarray,
@@ -485,7 +485,7 @@ def _largest_piece_when_spread(out: np.ndarray, fragment: np.ndarray, w: np.ndar
     rows = np.flatnonzero(out > 0)
     if len(rows) == 0:
         return out
-    spread = _diagonals(pts[rows], out[rows], c) > diagonal
+    spread = box_diagonals(pts[rows], out[rows], c) > diagonal
     rows = rows[spread[out[rows]]]
     if len(rows) == 0:
         return out
@@ -495,12 +495,3 @@ def _largest_piece_when_spread(out: np.ndarray, fragment: np.ndarray, w: np.ndar
     out[rows[fragment[rows] != largest[out[rows]]]] = 0
     return out
 
-
-def _diagonals(pts: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
-    """(k + 1,) bounding-box diagonal of the rows of each group 0..k (0 for an empty one)."""
-    lo = np.full((3, k + 1), np.inf)
-    hi = np.full((3, k + 1), -np.inf)
-    for d in range(3):
-        np.minimum.at(lo[d], group, pts[:, d])
-        np.maximum.at(hi[d], group, pts[:, d])
-    return np.sqrt((np.maximum(hi - lo, 0.0) ** 2).sum(axis=0))

@@ -12,6 +12,8 @@ diagonals with 2 d_max took nearly every whole ring screw for touching parts.
 The width used instead is the largest extent of the points along 13 directions (the axes, the
 face diagonals, the body diagonals): never more than the diameter, and at least 0.886 of it
 whichever way the set lies (the worst direction's cosine to the nearest of the 13).
+The box diagonal (``box_diagonals``) stays for the rules whose thresholds were tuned on it
+(the connected clustering's join and leftover rules).
 """
 from __future__ import annotations
 
@@ -21,6 +23,22 @@ _DIRECTIONS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1],
                         [1, 1, 0], [1, -1, 0], [1, 0, 1], [1, 0, -1], [0, 1, 1], [0, 1, -1],
                         [1, 1, 1], [1, 1, -1], [1, -1, 1], [-1, 1, 1]], np.float64)
 WIDTH_DIRECTIONS = _DIRECTIONS / np.linalg.norm(_DIRECTIONS, axis=1, keepdims=True)
+
+
+def box_extents(points: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
+    """(3, k + 1) extent along x, y, z of the rows of ``points`` (n, 3) in each group 0..k (0 for
+    an empty group)."""
+    lo = np.full((3, k + 1), np.inf)
+    hi = np.full((3, k + 1), -np.inf)
+    for d in range(3):
+        np.minimum.at(lo[d], group, points[:, d])
+        np.maximum.at(hi[d], group, points[:, d])
+    return np.maximum(hi - lo, 0.0)
+
+
+def box_diagonals(points: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
+    """(k + 1,) bounding-box diagonal of the rows of each group 0..k (0 for an empty one)."""
+    return np.sqrt((box_extents(points, group, k) ** 2).sum(axis=0))
 
 
 def group_widths(points: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
@@ -45,12 +63,7 @@ def fit_within(points: np.ndarray, group: np.ndarray, k: int, limit: float) -> n
     points: a group whose box diagonal is at most ``limit`` fits, one longer than ``limit``
     along an axis does not, and only the groups between (a few compact ones; a pile's large
     fragments are longer than a part along some axis) are measured on the other directions."""
-    lo = np.full((3, k + 1), np.inf)
-    hi = np.full((3, k + 1), -np.inf)
-    for d in range(3):
-        np.minimum.at(lo[d], group, points[:, d])
-        np.maximum.at(hi[d], group, points[:, d])
-    extent = np.maximum(hi - lo, 0.0)
+    extent = box_extents(points, group, k)
     fits = np.sqrt((extent ** 2).sum(axis=0)) <= limit
     unsure = ~fits & (extent.max(axis=0) <= limit)
     if unsure.any():
