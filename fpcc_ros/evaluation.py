@@ -25,6 +25,7 @@ from fpcc_ros.baseline_sweep import (DEFAULT_TUNE_SCENES, METHOD_NAMES, METHODS,
                                      default_distances, sweep_scene)
 from fpcc_ros.metrics import (VISIBLE_MIN_POINTS, InstanceCounts, f1_score, scene_counts,
                               visible_threshold)
+from fpcc_ros.miss_causes import add_causes, describe, error_causes
 
 PROTOCOLS = ("paper", "visible")
 REPORT_FORMAT = "fpcc_ros/eval-report/2"  # 2: two tuned baselines (issue 24)
@@ -126,6 +127,7 @@ class SceneResult:
     fpcc_ms: float
     fpcc_stages_ms: dict[str, float] = field(default_factory=dict)
     baseline: list[BaselineRun] = field(default_factory=list)
+    causes: dict[str, dict[str, int]] | None = None   # fpcc_ros.miss_causes (visible protocol)
 
     def baseline_at(self, setting: Setting | None) -> BaselineRun | None:
         return next((run for run in self.baseline if run.setting == setting), None)
@@ -148,6 +150,14 @@ class EvalReport:
     # -- totals (counts summed over scenes, then ratios) -------------------------------------
     def fpcc_totals(self, protocol: str) -> InstanceCounts:
         return sum((s.fpcc[protocol] for s in self.scenes), InstanceCounts())
+
+    def error_causes(self) -> dict[str, dict[str, int]] | None:
+        """Missed parts and extra instances by cause, summed over the scenes (visible only)."""
+        total = None
+        for s in self.scenes:
+            if s.causes is not None:
+                total = add_causes(total, s.causes)
+        return total
 
     def baseline_setting(self, method: str, protocol: str) -> Setting | None:
         """The setting tuned for ``method`` under ``protocol`` (None without a baseline)."""
@@ -195,6 +205,7 @@ class EvalReport:
             "scenes_evaluated": len(self.scenes),
             "skipped": [{"scene": name, "reason": why} for name, why in self.skipped],
             "totals": totals,
+            "error_causes": self.error_causes(),
             "baseline": self._baseline_json(),
             "timings_ms": {"fpcc": _stats([s.fpcc_ms for s in self.scenes]),
                            **{m: _stats(self.baseline_ms(m)) for m in METHODS
@@ -286,6 +297,9 @@ class EvalReport:
         lines.append(f"{'TP/pred/GT':<14}" + "".join(
             f" {f'{c.true_positives}/{c.predictions}/{c.ground_truths}':>10}" if c is not None
             else f"{'-':>11}" for c in counts.values()))
+        causes = self.error_causes()
+        if causes is not None:
+            lines.extend(f"FPCC {line}" for line in describe(causes))
         lines.extend(self._baseline_lines())
         fpcc_ms = _stats([s.fpcc_ms for s in self.scenes])["median"]
         lines.append(f"time per scene (median): FPCC {fpcc_ms:.0f} ms")
@@ -335,6 +349,7 @@ class EvalReport:
             "gt_instances": s.gt_instances, "visible_gt": s.visible_gt, "predicted": s.predicted,
             "fpcc": {p: _summary(s.fpcc[p]) for p in self.protocols},
             "fpcc_ms": s.fpcc_ms, "fpcc_stages_ms": s.fpcc_stages_ms,
+            "error_causes": s.causes,
             "tuning_scene": s.scene in self.tune_scenes,
             "baseline": baseline,
         }
@@ -427,13 +442,21 @@ def _evaluate_scene(scene: Scene, pipeline, protocols: tuple[str, ...]) -> Scene
 
     labels = np.asarray(result.labels)[finite]
     sizes = np.bincount(gt[gt > 0])
+    causes = None
+    if "visible" in protocols:
+        centers = getattr(result, "center_points", None)
+        finite_index = np.cumsum(finite) - 1      # input point -> its row among finite points
+        causes = error_causes(labels.astype(np.int64), gt, np.asarray(result.center_score)[finite],
+                              None if centers is None else finite_index[centers],
+                              cfg.score_threshold, limit)
     return SceneResult(scene=scene.name, points=len(scene.xyz), valid_points=int(finite.sum()),
                        part_radius=float(cfg.part_radius), visible_threshold=limit,
                        gt_instances=int((sizes > 0).sum()), visible_gt=int((sizes >= limit).sum()),
                        predicted=int(len(np.unique(result.labels[result.labels > 0]))),
                        fpcc={p: scene_counts(labels, gt, p, min_visible=limit) for p in protocols},
                        fpcc_ms=fpcc_ms,
-                       fpcc_stages_ms=dict(getattr(result, "timings_ms", {}) or {}))
+                       fpcc_stages_ms=dict(getattr(result, "timings_ms", {}) or {}),
+                       causes=causes)
 
 
 @dataclass

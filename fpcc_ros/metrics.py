@@ -58,19 +58,36 @@ def iou_matrix(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray
     Background GT points inside a prediction enlarge its union (they count against it).
     Returns ``(iou (P, G), pred_ids, gt_ids)``.
     """
+    overlap = overlap_matrix(pred, gt)
+    union = overlap.pred_sizes[:, None] + overlap.gt_sizes[None, :] - overlap.shared
+    iou = overlap.shared / union if overlap.shared.size else overlap.shared
+    return iou, overlap.pred_ids, overlap.gt_ids
+
+
+@dataclass
+class Overlap:
+    """Points shared by every predicted and GT instance (label > 0), and their sizes."""
+
+    shared: np.ndarray      # (P, G) points in both
+    pred_ids: np.ndarray    # (P,) predicted labels
+    gt_ids: np.ndarray      # (G,) GT labels
+    pred_sizes: np.ndarray  # (P,) points of each prediction, background GT points included
+    gt_sizes: np.ndarray    # (G,)
+
+
+def overlap_matrix(pred: np.ndarray, gt: np.ndarray) -> Overlap:
+    """The counts behind :func:`iou_matrix` (the error breakdown of fpcc_ros.miss_causes needs
+    the shares, not only the ratio)."""
     pred_ids = np.unique(pred[pred > 0])
     gt_ids = np.unique(gt[gt > 0])
-    if len(pred_ids) == 0 or len(gt_ids) == 0:
-        return np.zeros((len(pred_ids), len(gt_ids))), pred_ids, gt_ids
     p = np.searchsorted(pred_ids, pred)
     g = np.searchsorted(gt_ids, gt)
     both = (pred > 0) & (gt > 0)
-    inter = np.zeros((len(pred_ids), len(gt_ids)))
-    np.add.at(inter, (p[both], g[both]), 1)
-    pred_size = np.bincount(p[pred > 0], minlength=len(pred_ids))
-    gt_size = np.bincount(g[gt > 0], minlength=len(gt_ids))
-    union = pred_size[:, None] + gt_size[None, :] - inter
-    return inter / union, pred_ids, gt_ids
+    shared = np.zeros((len(pred_ids), len(gt_ids)))
+    np.add.at(shared, (p[both], g[both]), 1)
+    return Overlap(shared=shared, pred_ids=pred_ids, gt_ids=gt_ids,
+                   pred_sizes=np.bincount(p[pred > 0], minlength=len(pred_ids)),
+                   gt_sizes=np.bincount(g[gt > 0], minlength=len(gt_ids)))
 
 
 def match_instances(iou: np.ndarray, threshold: float = IOU_THRESHOLD) -> int:

@@ -186,6 +186,8 @@ class SegmentationResult:
     view_axis: str = "+z"       # the camera's viewing direction the network was shown
     num_inferred_points: int = 0  # points run through the network, halos included
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # one input point in the voxel of each center NMS kept (fpcc eval's error breakdown)
+    center_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def num_instances(self) -> int:
@@ -344,7 +346,8 @@ class Pipeline:
                                   num_network_points=len(net_xyz), voxel_size=voxel,
                                   view_axis=view_axis,
                                   num_inferred_points=sum(len(run.ext) for run in runs),
-                                  timings_ms=clock.laps)
+                                  timings_ms=clock.laps,
+                                  center_points=_center_points(centers, inverse, valid_idx))
 
     def _network_points(self, xyz: np.ndarray, clock: "_StageClock"
                         ) -> tuple[np.ndarray, np.ndarray, float, str, np.ndarray, np.ndarray]:
@@ -507,6 +510,16 @@ def _bounded_downsample(xyz: np.ndarray, voxel: float, max_points: int
             voxel *= 1.05 * np.sqrt(len(keep) / max_points)
         keep, inverse = voxel_downsample(xyz, voxel)
     return keep, inverse, voxel
+
+
+def _center_points(centers: np.ndarray, inverse: np.ndarray, valid_idx: np.ndarray
+                   ) -> np.ndarray:
+    """The first input point of each center's voxel (``inverse``: valid point -> voxel)."""
+    is_center = np.zeros(int(inverse.max(initial=-1)) + 1, bool)
+    is_center[centers] = True
+    in_center = np.flatnonzero(is_center[inverse])
+    _, first = np.unique(inverse[in_center], return_index=True)
+    return valid_idx[in_center[first]]
 
 
 def _drop_small_instances(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:
