@@ -12,8 +12,8 @@ a half-written bag under the name the user asked for.
 from __future__ import annotations
 
 import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -212,19 +212,27 @@ class BagWriter:
         parent = self.path.parent
         if not parent.is_dir():
             raise BagError(f"cannot write {str(self.path)!r}: directory {str(parent)!r} does not exist")
-        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=parent))
+        # named before it exists, and made inside the try: an interrupt (SIGINT/SIGTERM as
+        # KeyboardInterrupt) that lands just after the folder is made still removes it. With
+        # tempfile.mkdtemp the name was only known once the call returned, and a signal in that
+        # window left the folder behind (seen once in CI under load)
+        tmpdir = parent / f".{self.path.name}.partial-{secrets.token_hex(8)}"
         # until __enter__ returns, __exit__ will not run: anything raised here (a failed open, a
         # KeyboardInterrupt from SIGINT/SIGTERM) removes the temporary folder itself
         try:
+            tmpdir.mkdir(mode=0o700)
+            self._tmpdir = tmpdir
             # version 8: what ROS 2 Jazzy's rosbag2 writes; rosbags names the file <dir>.mcap.
-            self._writer = Writer(self._tmpdir / self.path.name, version=8,
+            self._writer = Writer(tmpdir / self.path.name, version=8,
                                   storage_plugin=StoragePlugin.MCAP)
             if self.compress:  # STORAGE = MCAP chunk compression (zstd), transparent to readers
                 self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             self._writer.open()
-        except BaseException:
-            self._writer = None
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
+        except BaseException as exc:
+            self._writer = self._tmpdir = None
+            someone_elses = isinstance(exc, FileExistsError) and exc.filename == str(tmpdir)
+            if not someone_elses:
+                shutil.rmtree(tmpdir, ignore_errors=True)
             raise
         return self
 

@@ -1,6 +1,7 @@
 """rosbag2 MCAP write -> read with rosbags and with mcap_ros2 (an independent reader)."""
 from __future__ import annotations
 
+import os
 import shutil
 import struct
 
@@ -98,6 +99,23 @@ def test_exception_leaves_no_output(tmp_path):
             raise RuntimeError("boom")
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []  # no temporary sibling left either
+
+
+def test_an_interrupt_just_after_the_temporary_folder_is_made_removes_it(tmp_path, monkeypatch):
+    # SIGINT/SIGTERM arrive as KeyboardInterrupt at the next bytecode; in CI one landed between
+    # the folder's mkdir and the code that cleans it up, and `fpcc segment` left it behind
+    real_mkdir = os.mkdir
+
+    def mkdir_then_interrupted(path, *args, **kwargs):
+        real_mkdir(path, *args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "mkdir", mkdir_then_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with BagWriter(tmp_path / "out"):
+            pass
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_force_semantics(tmp_path, bag):
