@@ -59,9 +59,7 @@ def iou_matrix(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray
     Returns ``(iou (P, G), pred_ids, gt_ids)``.
     """
     overlap = overlap_matrix(pred, gt)
-    union = overlap.pred_sizes[:, None] + overlap.gt_sizes[None, :] - overlap.shared
-    iou = overlap.shared / union if overlap.shared.size else overlap.shared
-    return iou, overlap.pred_ids, overlap.gt_ids
+    return overlap.iou, overlap.pred_ids, overlap.gt_ids
 
 
 @dataclass
@@ -73,6 +71,11 @@ class Overlap:
     gt_ids: np.ndarray      # (G,) GT labels
     pred_sizes: np.ndarray  # (P,) points of each prediction, background GT points included
     gt_sizes: np.ndarray    # (G,)
+
+    @property
+    def iou(self) -> np.ndarray:
+        """(P, G) intersection over union."""
+        return self.shared / (self.pred_sizes[:, None] + self.gt_sizes[None, :] - self.shared)
 
 
 def overlap_matrix(pred: np.ndarray, gt: np.ndarray) -> Overlap:

@@ -39,8 +39,7 @@ def error_causes(pred: np.ndarray, gt: np.ndarray, center_score: np.ndarray,
         on_center[center_points] = True
     pred, gt, score, on_center = pred[keep], gt[keep], center_score[keep], on_center[keep]
     overlap = overlap_matrix(pred, gt)
-    shared = overlap.shared
-    iou = shared / (overlap.pred_sizes[:, None] + overlap.gt_sizes[None, :] - shared)
+    shared, iou = overlap.shared, overlap.iou
 
     part = np.searchsorted(overlap.gt_ids, gt)[gt > 0]  # GT column of each point on a part
     top_score = np.zeros(len(overlap.gt_ids))

@@ -186,7 +186,7 @@ class SegmentationResult:
     view_axis: str = "+z"       # the camera's viewing direction the network was shown
     num_inferred_points: int = 0  # points run through the network, halos included
     timings_ms: dict[str, float] = field(default_factory=dict)
-    # one input point in the voxel of each center NMS kept (fpcc eval's error breakdown)
+    # the input point NMS kept as each center (fpcc eval's error breakdown)
     center_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
@@ -272,7 +272,7 @@ class Pipeline:
         n = len(xyz)
 
         # 1-2b. valid points, voxel downsampled, in the camera's view, floor marked
-        valid_idx, inverse, voxel, view_axis, net_xyz, floor_free = \
+        valid_idx, inverse, voxel, view_axis, net_xyz, floor_free, keep = \
             self._network_points(xyz, clock)
 
         # 3. spatial blocks, each with a halo of neighbours around it; all inputs (features,
@@ -347,13 +347,15 @@ class Pipeline:
                                   view_axis=view_axis,
                                   num_inferred_points=sum(len(run.ext) for run in runs),
                                   timings_ms=clock.laps,
-                                  center_points=_center_points(centers, inverse, valid_idx))
+                                  center_points=np.take(valid_idx, np.take(keep, centers)))
 
     def _network_points(self, xyz: np.ndarray, clock: "_StageClock"
-                        ) -> tuple[np.ndarray, np.ndarray, float, str, np.ndarray, np.ndarray]:
+                        ) -> tuple[np.ndarray, np.ndarray, float, str, np.ndarray, np.ndarray,
+                                   np.ndarray]:
         """Steps 1-2b of :meth:`segment`: the valid points' indices, each valid point's
         representative (``inverse``), the voxel edge, the view axis, the representatives in the
-        camera's view (``net_xyz``) and those off the floor. A method so that calibration, which
+        camera's view (``net_xyz``), those off the floor, and the representatives' rows among
+        the valid points (``keep``: the input point behind each network point). A method so that calibration, which
         segments one scene under many clustering settings, can compute them once."""
         cfg = self.config
         # 1. valid points: finite xyz inside the optional ROI box (either corner may be empty)
@@ -374,7 +376,7 @@ class Pipeline:
             if cfg.remove_floor else np.zeros(len(net_xyz), bool)
         floor_free = np.flatnonzero(~on_floor)
         clock.lap("floor")
-        return valid_idx, inverse, voxel, view_axis, net_xyz, floor_free
+        return valid_idx, inverse, voxel, view_axis, net_xyz, floor_free, keep
 
     def _fragments(self, xyz: np.ndarray, valid_idx: np.ndarray, inverse: np.ndarray,
                    floor_free: np.ndarray, num_network_points: int, view_axis: str,
@@ -510,16 +512,6 @@ def _bounded_downsample(xyz: np.ndarray, voxel: float, max_points: int
             voxel *= 1.05 * np.sqrt(len(keep) / max_points)
         keep, inverse = voxel_downsample(xyz, voxel)
     return keep, inverse, voxel
-
-
-def _center_points(centers: np.ndarray, inverse: np.ndarray, valid_idx: np.ndarray
-                   ) -> np.ndarray:
-    """The first input point of each center's voxel (``inverse``: valid point -> voxel)."""
-    is_center = np.zeros(int(inverse.max(initial=-1)) + 1, bool)
-    is_center[centers] = True
-    in_center = np.flatnonzero(is_center[inverse])
-    _, first = np.unique(inverse[in_center], return_index=True)
-    return valid_idx[in_center[first]]
 
 
 def _drop_small_instances(labels: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray]:
