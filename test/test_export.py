@@ -201,6 +201,7 @@ def test_validate_scores_the_postprocess_labels(scenes):
     perfect = train_mod.validate(model, [scene], TINY_CONFIG, postprocess=lambda sc, pred, cfg: sc.instance)
     assert perfect["val_precision"] == 1.0 and perfect["val_recall"] == 1.0
     assert perfect["val_loss"] > 0 and 0 <= perfect["val_center_mae"] <= 1
+    assert 0 < perfect["val_nearest_own"] <= 1
     seen = []
 
     def nothing(sc, pred, cfg):

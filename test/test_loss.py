@@ -1,8 +1,11 @@
 """FPCC loss terms on tiny cases whose expected values are worked out by hand in the comments."""
+import math
+
 import pytest
 import torch
 
 from fpcc_ros.training.loss import (attention_scores, batch_loss, center_loss, embedding_loss,
+                                    nearest_prototype_hits, prototype_loss,
                                     embedding_loss_fast,
                                     feature_distance, pair_hinge, same_instance, smooth_l1,
                                     total_loss, valid_distance_mask)
@@ -80,6 +83,35 @@ def test_embedding_loss_hand_case():
     expected = (2 * 0.21 + 2 * 0.5) / 7
     got = embedding_loss(EMB, xyz, inst, s, d_max=0.1)
     assert got.item() == pytest.approx(expected, abs=1e-5)
+
+
+def test_prototype_loss_hand_case():
+    # part 1: core at 0 (score 0.9), rim at 0.4; part 2: core at 1 (0.8), rim at 0.7; background 5
+    emb = torch.tensor([[0.0], [0.4], [1.0], [0.7], [5.0]])
+    inst = torch.tensor([1, 1, 2, 2, 0])
+    s = torch.tensor([0.9, 0.2, 0.8, 0.1, 0.0])
+    # prototypes 0 and 1; logits -d^2 / 0.25 against (part 1, part 2); background left out
+    def ce(own, other):
+        return -own + math.log(math.exp(own) + math.exp(other))
+    expected = (ce(0.0, -4.0) + ce(-0.64, -1.44) + ce(0.0, -4.0) + ce(-0.36, -1.96)) / 4
+    assert prototype_loss(emb, inst, s).item() == pytest.approx(expected, abs=1e-5)
+    # a rim point nearer the other part's prototype costs more than one nearer its own
+    swapped = emb.clone()
+    swapped[1] = 0.8
+    assert prototype_loss(swapped, inst, s).item() > expected
+    # one prototype only (part 2 has no point above the core score): nothing to tell apart
+    assert prototype_loss(emb, inst, torch.tensor([0.9, 0.2, 0.5, 0.1, 0.0])).item() == 0.0
+
+
+def test_nearest_prototype_hits_counts_points_nearest_their_own_part():
+    # prototypes: part 1 at 0 (its points scoring > 0.7), part 2 at 1; part 3 has no core point
+    emb = torch.tensor([[0.0], [0.4], [0.6], [1.0], [0.9], [0.2], [0.0], [5.0]])
+    inst = torch.tensor([1, 1, 1, 2, 2, 2, 3, 0])
+    s = torch.tensor([0.9, 0.2, 0.3, 0.8, 0.5, 0.1, 0.5, 0.0])
+    # part 1: 0 hit, 0.4 hit, 0.6 miss (nearer 1); part 2: 1 hit, 0.9 hit, 0.2 miss;
+    # part 3 (no prototype) and background are not counted
+    assert nearest_prototype_hits(emb, inst, s) == (4, 6)
+    assert nearest_prototype_hits(emb, inst, torch.zeros(8)) == (0, 0)
 
 
 def test_embedding_loss_background():

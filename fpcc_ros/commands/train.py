@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha", type=float, default=TRAIN_ALPHA,
                         help=f"weight of the center-score loss (default {TRAIN_ALPHA:g}; the "
                              "paper's 3 goes with its unnormalised embedding loss)")
+    parser.add_argument("--prototype", type=float, default=0.0,
+                        help="weight of a cross-entropy that puts every part point nearest its "
+                        "own part's center prototype (default 0: off)")
     parser.add_argument("--no-augment", action="store_true",
                         help="no rotation / scale / voxel-size / dropout augmentation")
     parser.add_argument("--net", choices=("full", "tiny"), default="full",
@@ -84,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                                normals=args.normals)
         config = TrainConfig(
             epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
-            alpha=args.alpha, augment=not args.no_augment, seed=args.seed, threads=args.threads,
+            alpha=args.alpha, prototype=args.prototype, augment=not args.no_augment, seed=args.seed, threads=args.threads,
             time_limit_min=args.time_limit, anneal_by_time=args.anneal_by_time,
             val_every=args.val_every, precision=args.precision, data=data,
             teacher=str(args.teacher or ""), distill=args.distill,

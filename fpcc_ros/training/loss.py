@@ -71,6 +71,51 @@ def embedding_loss(embedding: torch.Tensor, xyz: torch.Tensor, instance: torch.T
     return (weight * kappa).sum() / valid.sum().clamp_min(1)
 
 
+CORE_SCORE = 0.7   # a part's prototype: its points with a ground-truth center score above this
+
+
+def core_prototypes(embedding: torch.Tensor, instance: torch.Tensor, center_score: torch.Tensor,
+                    core: float = CORE_SCORE) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(prototypes (P, C), rows (N,) bool, own (R,)): the mean embedding of each part's points
+    near its center (ground-truth score above ``core``), which is what the runtime compares
+    points with; the part points whose part has one; and the row of its own prototype for each."""
+    has_core = (instance > 0) & (center_score > core)
+    ids, slot = torch.unique(instance[has_core], return_inverse=True)
+    sums = embedding.new_zeros(len(ids), embedding.shape[1]).index_add_(0, slot, embedding[has_core])
+    counts = torch.bincount(slot, minlength=len(ids)).to(embedding.dtype)
+    own = torch.searchsorted(ids, instance).clamp_max(max(len(ids) - 1, 0))
+    rows = (instance > 0) & (ids[own] == instance) if len(ids) else instance < 0
+    return sums / counts[:, None], rows, own[rows]
+
+
+def prototype_loss(embedding: torch.Tensor, instance: torch.Tensor, center_score: torch.Tensor,
+                   temperature: float = 0.25) -> torch.Tensor:
+    """Cross-entropy of each part point against the block's part prototypes (core_prototypes):
+    logits -D^2 / ``temperature``, its own part the target.
+
+    The hinge only asks pairs to sit inside / beyond fixed margins; this asks every point to be
+    nearest its own part, the per-point decision clustering makes. 0 when the block holds fewer
+    than two prototypes.
+    """
+    prototypes, rows, own = core_prototypes(embedding, instance, center_score)
+    if len(prototypes) < 2:
+        return embedding.sum() * 0.0
+    sq = torch.cdist(embedding[rows], prototypes).square()
+    return F.cross_entropy(-sq / temperature, own)
+
+
+def nearest_prototype_hits(embedding: torch.Tensor, instance: torch.Tensor,
+                           center_score: torch.Tensor) -> tuple[int, int]:
+    """(hits, points): how many part points lie nearer their own part's prototype than any other
+    part's in the block. Ground-truth parts, no clustering settings: a trained network's
+    embedding quality by itself (with ground-truth embeddings every point is a hit)."""
+    prototypes, rows, own = core_prototypes(embedding, instance, center_score)
+    if len(prototypes) == 0:
+        return 0, 0
+    nearest = torch.cdist(embedding[rows], prototypes).argmin(dim=1)
+    return int((nearest == own).sum()), len(own)
+
+
 def smooth_l1(x: torch.Tensor) -> torch.Tensor:
     """0.5 x^2 where |x| < 1, |x| - 0.5 elsewhere (elementwise)."""
     ax = x.abs()
@@ -173,17 +218,21 @@ def embedding_loss_fast(embedding: torch.Tensor, xyz: torch.Tensor, instance: to
 
 
 def batch_loss(embedding: torch.Tensor, center_score: torch.Tensor, batch: dict[str, torch.Tensor],
-               alpha: float = ALPHA, eps1: float = EPS1,
-               eps2: float = EPS2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               alpha: float = ALPHA, eps1: float = EPS1, eps2: float = EPS2,
+               prototype: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(L, L_EF, L_CS) of a collated batch (see dataset.collate): L_EF averaged over blocks,
-    L_CS over all real points; padded rows (``valid`` False) are left out of both."""
+    L_CS over all real points; padded rows (``valid`` False) are left out of both. With
+    ``prototype`` > 0, L_EF also holds that weight times :func:`prototype_loss`."""
     valid = batch["valid"]
     ef_terms = []
     for b in range(embedding.shape[0]):
         rows = valid[b]
-        ef_terms.append(embedding_loss_fast(
-            embedding[b][rows], batch["xyz"][b][rows], batch["instance"][b][rows],
-            batch["center_score"][b][rows], float(batch["part_radius"][b]), eps1, eps2))
+        emb, inst, score = embedding[b][rows], batch["instance"][b][rows], batch["center_score"][b][rows]
+        term = embedding_loss_fast(emb, batch["xyz"][b][rows], inst, score,
+                                   float(batch["part_radius"][b]), eps1, eps2)
+        if prototype > 0:
+            term = term + prototype * prototype_loss(emb, inst, score)
+        ef_terms.append(term)
     loss_ef = torch.stack(ef_terms).mean()
     loss_cs = center_loss(center_score[valid], batch["center_score"][valid])
     return total_loss(loss_ef, loss_cs, alpha), loss_ef, loss_cs

@@ -30,13 +30,14 @@ from fpcc_ros.training.dataset import BlockDataset, DataConfig, Scene, collate, 
     load_scene, scene_blocks
 from fpcc_ros.training.health import WARN_DEAD_SHARE, channel_health, dead_layers, \
     gradient_norm, health_line, make_optimizer
-from fpcc_ros.training.loss import EPS1, EPS2, batch_loss, distill_loss
+from fpcc_ros.training.loss import EPS1, EPS2, batch_loss, distill_loss, nearest_prototype_hits
 from fpcc_ros.training.model import FPCCNet, NetConfig, with_normal_inputs
 
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
 HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss",
-                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_precision", "val_recall",
+                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_nearest_own", "val_precision",
+                  "val_recall",
                   "val_mucov", "val_precision_paper", "val_recall_paper", "grad_norm", "seconds")
 LIVE_PREFIX = "live_"   # history columns live_<layer>: live channels of that layer (health.py)
 
@@ -60,6 +61,7 @@ class TrainConfig:
     alpha: float = TRAIN_ALPHA
     eps1: float = EPS1
     eps2: float = EPS2
+    prototype: float = 0.0      # weight of loss.prototype_loss (0 = the paper's loss only)
     augment: bool = True
     seed: int = 0
     threads: int = 2
@@ -289,14 +291,23 @@ def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
     """Validation loss on unaugmented blocks, center-score MAE per downsampled point and, with
     ``postprocess``, precision / recall / MUCov at IoU 0.5 summed over the scenes
     (fpcc_ros.metrics; ``val_precision``/``val_recall`` use the visible protocol, ``*_paper``
-    count every ground-truth instance)."""
+    count every ground-truth instance), and ``val_nearest_own``: the share of part points nearer
+    their own part's center prototype than any other's (loss.nearest_prototype_hits), the
+    embeddings' quality without clustering settings."""
     from fpcc_ros.metrics import InstanceCounts, scene_counts, visible_threshold
 
     model.eval()
     losses, abs_err, n_pts = [], 0.0, 0
+    hits = [0, 0]
     visible, paper = InstanceCounts(), InstanceCounts()
+
     def block_loss(batch: dict, emb: torch.Tensor, s: torch.Tensor) -> None:
-        losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1, config.eps2)])
+        losses.append([t.item() for t in batch_loss(emb, s, batch, config.alpha, config.eps1, config.eps2,
+                                                     config.prototype)])
+        for b, rows in enumerate(batch["valid"]):
+            found = nearest_prototype_hits(emb[b][rows].float(), batch["instance"][b][rows],
+                                           batch["center_score"][b][rows])
+            hits[0], hits[1] = hits[0] + found[0], hits[1] + found[1]
 
     for scene in scenes:
         pred = predict_scene(model, scene, config.data, on_block=block_loss)
@@ -312,6 +323,8 @@ def validate(model: FPCCNet, scenes: Sequence[Scene], config: TrainConfig,
         out["val_loss"], out["val_loss_ef"], out["val_loss_cs"] = map(float, np.mean(losses, axis=0))
     if n_pts:
         out["val_center_mae"] = abs_err / n_pts
+    if hits[1]:
+        out["val_nearest_own"] = hits[0] / hits[1]
     if postprocess is not None and scenes:
         out.update(val_precision=visible.precision, val_recall=visible.recall, val_mucov=visible.mucov,
                    val_precision_paper=paper.precision, val_recall_paper=paper.recall)
@@ -339,7 +352,7 @@ def write_history(run_dir: Path, history: list[dict[str, Any]],
         if any(key in h for h in history):
             ax1.plot(epochs, [h.get(key, np.nan) for h in history], marker=".", label=key)
     ax1.set_xlabel("epoch"), ax1.set_ylabel("loss")
-    for key in ("val_precision", "val_recall", "val_center_mae"):
+    for key in ("val_precision", "val_recall", "val_nearest_own", "val_center_mae"):
         if any(key in h for h in history):
             ax2.plot(epochs, [h.get(key, np.nan) for h in history], marker=".", label=key)
     ax2.set_xlabel("epoch"), ax2.set_ylim(0, 1)
@@ -487,7 +500,8 @@ def train(config: TrainConfig, data: Sequence[str | Path] | None, run_dir: str |
                     with torch.no_grad():
                         target_embedding, target_score = teacher(batch["features"], batch["knn"])
             loss, loss_ef, loss_cs = batch_loss(embedding.float(), score.float(), batch,
-                                                config.alpha, config.eps1, config.eps2)
+                                                config.alpha, config.eps1, config.eps2,
+                                                config.prototype)
             terms = {"loss_ef": loss_ef, "loss_cs": loss_cs}
             if teacher is not None:
                 terms["loss_kd"] = distill_loss(embedding.float(), score.float(),
