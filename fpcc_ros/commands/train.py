@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
                                normals=args.normals)
         config = TrainConfig(
             epochs=args.epochs, lr=args.lr, weight_decay=args.weight_decay, batch=args.batch,
-            alpha=args.alpha, prototype=args.prototype, augment=not args.no_augment, seed=args.seed, threads=args.threads,
+            alpha=args.alpha, prototype=args.prototype, augment=not args.no_augment,
+            seed=args.seed, threads=args.threads,
             time_limit_min=args.time_limit, anneal_by_time=args.anneal_by_time,
             val_every=args.val_every, precision=args.precision, data=data,
             teacher=str(args.teacher or ""), distill=args.distill,

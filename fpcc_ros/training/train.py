@@ -36,9 +36,9 @@ from fpcc_ros.training.model import FPCCNet, NetConfig, with_normal_inputs
 CHECKPOINT_FORMAT = "fpcc_ros/checkpoint/1"
 _now = time.monotonic  # the run's clock (tests replace it)
 HISTORY_FIELDS = ("epoch", "lr", "loss", "loss_ef", "loss_cs", "loss_kd", "val_loss",
-                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_nearest_own", "val_precision",
-                  "val_recall",
-                  "val_mucov", "val_precision_paper", "val_recall_paper", "grad_norm", "seconds")
+                  "val_loss_ef", "val_loss_cs", "val_center_mae", "val_nearest_own",
+                  "val_precision", "val_recall", "val_mucov", "val_precision_paper",
+                  "val_recall_paper", "grad_norm", "seconds")
 LIVE_PREFIX = "live_"   # history columns live_<layer>: live channels of that layer (health.py)
 
 
