@@ -24,9 +24,9 @@ center prototype than any other part's. Measured on validation blocks of a 30-mi
 fine-tune: 66 % of same-part pairs sat beyond eps1 while 91 % of different-part pairs sat beyond
 eps2, and 11 % of part points lay nearer another part's prototype than their own. The hinge pays
 no heed to which of two near centers a point is closer to; this term does. Weighting
-same-instance pairs 2 instead (the reference code's choice) moved that 11 % nowhere. With W 0.05 the
-gear shaft's share fell to 7.5 % and its test F1 rose 0.04; the ring screw (9.5 % without it) did
-not gain, so the term stays off by default (README, `--prototype`).
+same-instance pairs 2 instead (the reference code's choice) moved that 11 % nowhere. With W 0.05
+the gear shaft's share fell to 7.5 % and its test F1 rose 0.02-0.04 (two seeds); the ring screw
+(9.5 % without it) did not gain, so the term stays off by default (README, `--prototype`).
 """
 from __future__ import annotations
 
