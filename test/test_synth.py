@@ -197,3 +197,26 @@ def test_shared_gear_shaft_scene(tmp_path):
     scene = generate_scene(gear, 3, seed=2, width=W, height=H, assets=assets)
     assert float(scene["part_radius"]) == pytest.approx(gear.d_max)
     assert int(scene["num_parts"]) == 3 and (scene["visible_points"][1:] > 0).sum() >= 2
+
+
+def test_dense_range_fills_the_bin_where_the_default_stops_at_60():
+    """A full bin is 2.5 layers of parts lying flat on the 0.6 x 0.4 m floor (capped at 100
+    copies); the default range stops at 60, short of that for long thin parts."""
+    from fpcc_ros.training.parts import BUILTIN_PARTS
+    from fpcc_ros.training.synth import default_parts_range, dense_parts_range
+
+    def layers(part, copies: int) -> float:  # flat area of `copies` parts over the floor area
+        e = np.sort(part.extents)[::-1]
+        s = float(np.clip(part.d_max / 0.06, 0.5, 1.0))
+        return copies * 0.7 * e[0] * e[1] / (0.6 * s * 0.4 * s)
+
+    shaft = make_part("gear_shaft", 38)
+    assert default_parts_range(shaft)[1] == 60 and layers(shaft, 60) < 2.0
+    lo, hi = dense_parts_range(shaft)
+    assert 60 < hi <= 100 and layers(shaft, hi) == pytest.approx(2.5, abs=0.05)
+    assert layers(shaft, lo) == pytest.approx(1.0, abs=0.05)
+    for name in BUILTIN_PARTS:
+        part = make_part(name, 38)
+        (dlo, dhi), (lo, hi) = default_parts_range(part), dense_parts_range(part)
+        assert lo >= dlo and hi >= dhi and hi - lo >= 5 and hi <= 100, name
+        assert hi == 100 or layers(part, hi) == pytest.approx(2.5, abs=0.05), name
