@@ -34,7 +34,7 @@ for part in $PARTS; do
     $PY -m fpcc_ros.cli synth --part "$part" --part-seed "$ps" --scenes "$PER" \
         --seed $((BASE + i * 1000)) --out "$OUT/train/${part}_p${ps}" --workers 2
     if [ "$DENSE" = dense ]; then
-      range=$($PY -c "from fpcc_ros.training.synth import dense_parts_range, make_part; print(*dense_parts_range(make_part('$part', $ps)))")
+      range=$($PY -c "from fpcc_ros.training.synth import dense_parts_range, resolve_part; print(*dense_parts_range(resolve_part('$part', $ps)))")
       $PY -m fpcc_ros.cli synth --part "$part" --part-seed "$ps" --scenes 1 --parts $range \
           --seed $((BASE + i * 1000 + 500)) --out "$OUT/train/${part}_p${ps}_dense" --workers 2
     fi
