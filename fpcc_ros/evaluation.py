@@ -363,7 +363,8 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
              fixed_part_radius: bool = False,
              progress: Callable[[Iterable], Iterable] | None = None,
              warn: Callable[[str], None] | None = None,
-             columns: str | None = None, oracle: tuple[str, ...] = ()) -> EvalReport:
+             columns: str | None = None, oracle: tuple[str, ...] = (),
+             root: Path | None = None) -> EvalReport:
     """Evaluate ``pipeline`` (anything with ``segment(xyz, image_shape)`` and ``config``) and
     the baselines.
 
@@ -372,7 +373,8 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     these scenes; one, and they say how far a perfect head of that kind would take the model.
 
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
-    ``columns`` names the columns of .txt scenes (see :func:`load_scene`).
+    ``columns`` names the columns of .txt scenes (see :func:`load_scene`). ``root``: scenes are
+    named by their path below it (``part_a/scene_00000.npz``), else by their file name.
     The baselines are tuned on the first ``tune_scenes`` evaluated scenes over ``tolerances``
     (link distances, metres; None = :func:`default_distances` of the median part radius) x
     ``min_samples`` (DBSCAN) x ``min_cluster_sizes``, then run at the chosen settings on every
@@ -409,6 +411,8 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     tuner = _Tuner(report, tune_scenes) if grid is not None else None
     for path in (progress or (lambda it: it))(paths):
         scene = load_scene(path, columns)
+        if root is not None:   # sub-folders of one --data hold files of the same name
+            scene.name = path.relative_to(root).as_posix()
         if not (scene.instance > 0).any():
             reason = "no ground-truth instances (every 'instance' label is 0)"
             report.skipped.append((scene.name, reason))

@@ -297,6 +297,24 @@ def test_command_end_to_end(tmp_path, capsys):
 
 
 @needs_model
+def test_command_reads_sub_folders(tmp_path):
+    """A set of several parts is one folder per part (scripts/make_default_dataset.sh), with
+    the same file names in each: every scene counts, named by its path below --data."""
+    data = tmp_path / "val"
+    data.mkdir()
+    _two_scenes(data / "part_a")
+    _two_scenes(data / "part_b")
+    out = tmp_path / "report.json"
+    rc = cli_main(["eval", "--data", str(data), "--model", str(TINY_MODEL), "--out", str(out),
+                   "--no-baseline"])
+    assert rc == 0
+    report = json.loads(out.read_text())
+    assert [s["scene"] for s in report["scenes"]] == ["part_a/s1.npz", "part_a/s2.npz",
+                                                      "part_b/s1.npz", "part_b/s2.npz"]
+    assert report["totals"]["visible"]["fpcc"]["ground_truths"] == 10   # 5 per folder
+
+
+@needs_model
 def test_command_options(tmp_path, capsys):
     data = tmp_path / "scenes"
     _two_scenes(data)

@@ -22,7 +22,8 @@ SEGMENT_OUTPUT_SUFFIX = "_segmented.npz"  # written by `fpcc segment`: predictio
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="directory of scene NPZ files with ground truth (DESIGN.md §4), or "
-                        "of labelled text scenes (.txt, with --part-radius)")
+                        "of labelled text scenes (.txt, with --part-radius); its sub-folders "
+                        "are searched too")
     parser.add_argument("--columns", choices=["paper", "peer"], default="paper",
                         help="columns of .txt scenes: paper = x y z center_score instance (the "
                         "FPCC authors' format), peer = x y z instance center_score")
@@ -85,15 +86,17 @@ def run(args: argparse.Namespace) -> int:
     data: Path = args.data
     if not data.is_dir():
         return fail(f"--data {data} is not a directory; point it at a folder of scene .npz files")
-    scenes = sorted(p for pattern in ("*.npz", "*.txt") for p in data.glob(pattern)
+    # sub-folders too, as `fpcc train` and `fpcc calibrate` read --data: a validation set of
+    # several parts (scripts/make_default_dataset.sh) is one folder per part
+    scenes = sorted(p for pattern in ("*.npz", "*.txt") for p in data.rglob(pattern)
                     if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
-    ignored = sum(1 for p in data.glob("*" + SEGMENT_OUTPUT_SUFFIX))
+    ignored = sum(1 for p in data.rglob("*" + SEGMENT_OUTPUT_SUFFIX))
     if ignored:
         print(f"ignoring {ignored} *{SEGMENT_OUTPUT_SUFFIX} file(s): `fpcc segment` outputs hold "
               "predictions, not ground truth", file=sys.stderr)
     if not scenes:
-        return fail(f"--data {data} holds no scene .npz or .txt files (make some with `fpcc "
-                    "synth`)")
+        return fail(f"--data {data} holds no scene .npz or .txt files, nor do its sub-folders "
+                    "(make some with `fpcc synth`)")
     if args.limit:
         scenes = scenes[:args.limit]
     protocols = ("paper", "visible") if args.protocol == "both" else (args.protocol,)
@@ -110,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
                           fixed_part_radius=args.part_radius is not None,
                           progress=lambda it: tqdm(it, desc="eval", unit="scene", file=sys.stderr),
                           warn=lambda msg: tqdm.write(f"warning: {msg}", file=sys.stderr),
-                          columns=args.columns, oracle=_oracle_heads(args))
+                          columns=args.columns, oracle=_oracle_heads(args), root=data)
     except (ModelLoadError, ConfigError, EvalError) as exc:
         return fail(str(exc))
 
