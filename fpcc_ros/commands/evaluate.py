@@ -88,9 +88,9 @@ def run(args: argparse.Namespace) -> int:
         return fail(f"--data {data} is not a directory; point it at a folder of scene .npz files")
     # sub-folders too, as `fpcc train` and `fpcc calibrate` read --data: a validation set of
     # several parts (scripts/make_default_dataset.sh) is one folder per part
-    scenes = sorted(p for pattern in ("*.npz", "*.txt") for p in data.rglob(pattern)
-                    if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
-    ignored = sum(1 for p in data.rglob("*" + SEGMENT_OUTPUT_SUFFIX))
+    found = [p for p in data.rglob("*") if p.suffix in (".npz", ".txt") and p.is_file()]
+    scenes = sorted(p for p in found if not p.name.endswith(SEGMENT_OUTPUT_SUFFIX))
+    ignored = len(found) - len(scenes)
     if ignored:
         print(f"ignoring {ignored} *{SEGMENT_OUTPUT_SUFFIX} file(s): `fpcc segment` outputs hold "
               "predictions, not ground truth", file=sys.stderr)
