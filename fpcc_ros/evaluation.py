@@ -4,9 +4,10 @@ For every scene NPZ all methods segment the SAME points; counts are taken under 
 and ``visible`` protocols (fpcc_ros.metrics) and summed over the set before any ratio is formed.
 The baselines (crop + floor/wall removal, then Euclidean clustering or DBSCAN, small clusters
 dropped) are tuned as a careful user would tune them (fpcc_ros.baseline_sweep): every setting
-of a grid on the first few scenes, the best one per protocol then run on every scene. FPCC is
-reported against the stronger of the two on the whole set, so it is never compared against a
-strawman. Timings are per scene, wall clock.
+of a grid on the first few scenes of each part, the best one per protocol then run on every
+scene of that part. FPCC is reported against the stronger of the two on the whole set, so it is
+never compared against a strawman, nor against one tuned for another part. Timings are per
+scene, wall clock.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from fpcc_ros.metrics import (VISIBLE_MIN_POINTS, InstanceCounts, f1_score, scen
 from fpcc_ros.miss_causes import add_causes, describe, error_causes
 
 PROTOCOLS = ("paper", "visible")
-REPORT_FORMAT = "fpcc_ros/eval-report/2"  # 2: two tuned baselines (issue 24)
+REPORT_FORMAT = "fpcc_ros/eval-report/3"  # 2: two tuned baselines (issue 24); 3: tuned per part
 
 
 class EvalError(ValueError):
@@ -128,24 +129,38 @@ class SceneResult:
     fpcc_stages_ms: dict[str, float] = field(default_factory=dict)
     baseline: list[BaselineRun] = field(default_factory=list)
     causes: dict[str, dict[str, int]] | None = None   # fpcc_ros.miss_causes (visible protocol)
+    part: str = ""           # the baselines' tuning group (:func:`part_of`)
 
     def baseline_at(self, setting: Setting | None) -> BaselineRun | None:
         return next((run for run in self.baseline if run.setting == setting), None)
 
 
 @dataclass
+class PartTuning:
+    """The baselines as tuned for one part: a user tunes DBSCAN for each part, on scenes of that
+    part, with link distances scaled to its size."""
+
+    grid: Grid
+    scenes: list[str] = field(default_factory=list)   # the tuning scenes
+    # every grid setting's counts summed over the tuning scenes, and the choice per method/protocol
+    totals: dict[Setting, dict[str, InstanceCounts]] = field(default_factory=dict)
+    chosen: dict[str, dict[str, Setting]] = field(default_factory=dict)
+
+
+@dataclass
 class EvalReport:
     scenes: list[SceneResult]
     protocols: tuple[str, ...]
-    grid: Grid | None = None             # None: no baseline
+    tunings: dict[str, PartTuning] = field(default_factory=dict)   # empty: no baseline
     skipped: list[tuple[str, str]] = field(default_factory=list)
     model: dict[str, Any] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
     part_radius_source: str = "scene"
-    tune_scenes: list[str] = field(default_factory=list)
-    # every grid setting's counts summed over the tuning scenes, and the choice per method/protocol
-    tuning: dict[Setting, dict[str, InstanceCounts]] = field(default_factory=dict)
-    chosen: dict[str, dict[str, Setting]] = field(default_factory=dict)
+
+    @property
+    def tune_scenes(self) -> list[str]:
+        """Every part's tuning scenes."""
+        return [name for tuning in self.tunings.values() for name in tuning.scenes]
 
     # -- totals (counts summed over scenes, then ratios) -------------------------------------
     def fpcc_totals(self, protocol: str) -> InstanceCounts:
@@ -159,35 +174,42 @@ class EvalReport:
                 total = add_causes(total, s.causes)
         return total
 
-    def baseline_setting(self, method: str, protocol: str) -> Setting | None:
-        """The setting tuned for ``method`` under ``protocol`` (None without a baseline)."""
-        return self.chosen.get(method, {}).get(protocol)
+    def baseline_setting(self, method: str, protocol: str, part: str | None = None
+                         ) -> Setting | None:
+        """The setting tuned for ``method`` under ``protocol`` on ``part`` (None: the only
+        part's; None without a baseline, or with several parts and no ``part``)."""
+        if part is None and len(self.tunings) == 1:
+            part = next(iter(self.tunings))
+        tuning = self.tunings.get(part) if part is not None else None
+        return tuning.chosen.get(method, {}).get(protocol) if tuning else None
+
+    def baseline_runs(self, method: str, protocol: str) -> list[BaselineRun]:
+        """``method`` on every scene at its part's tuned setting."""
+        return [r for s in self.scenes
+                if (r := s.baseline_at(self.baseline_setting(method, protocol, s.part)))]
 
     def baseline_totals(self, protocol: str, method: str | None = None) -> InstanceCounts | None:
-        """A baseline's counts over every scene at its tuned setting; ``method`` None = the
-        stronger one (:meth:`stronger_baseline`)."""
+        """A baseline's counts over every scene at its part's tuned setting; ``method`` None =
+        the stronger one (:meth:`stronger_baseline`)."""
         method = method or self.stronger_baseline(protocol)
-        setting = self.baseline_setting(method, protocol) if method else None
-        if setting is None:
+        if method is None or not self.tunings:
             return None
-        runs = (s.baseline_at(setting) for s in self.scenes)
-        return sum((r.counts[protocol] for r in runs if r is not None), InstanceCounts())
+        return sum((r.counts[protocol] for r in self.baseline_runs(method, protocol)),
+                   InstanceCounts())
 
     def stronger_baseline(self, protocol: str) -> str | None:
-        """The method whose tuned setting scores the higher F1 on the whole set (what FPCC is
+        """The method whose tuned settings score the higher F1 on the whole set (what FPCC is
         compared with; a tie goes to Euclidean clustering, the simpler)."""
         best, best_f1 = None, -1.0
-        for method in METHODS:
-            if self.baseline_setting(method, protocol) is not None:
-                f1 = f1_score(self.baseline_totals(protocol, method))
-                if f1 > best_f1:
-                    best, best_f1 = method, f1
+        for method in METHODS if self.tunings else ():
+            f1 = f1_score(self.baseline_totals(protocol, method))
+            if f1 > best_f1:
+                best, best_f1 = method, f1
         return best
 
     def baseline_ms(self, method: str, protocol: str | None = None) -> list[float]:
-        """Time per scene of ``method`` at its tuned setting (crop + planes + clustering)."""
-        setting = self.baseline_setting(method, protocol or self.primary)
-        return [r.ms for s in self.scenes if (r := s.baseline_at(setting)) is not None]
+        """Time per scene of ``method`` at its part's tuned setting (crop + planes + clustering)."""
+        return [r.ms for r in self.baseline_runs(method, protocol or self.primary)]
 
     # -- output --------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
@@ -209,37 +231,39 @@ class EvalReport:
             "baseline": self._baseline_json(),
             "timings_ms": {"fpcc": _stats([s.fpcc_ms for s in self.scenes]),
                            **{m: _stats(self.baseline_ms(m)) for m in METHODS
-                              if self.baseline_setting(m, self.primary)}},
+                              if self.tunings}},
             "scenes": [self._scene_json(s) for s in self.scenes],
         }
 
     def _baseline_json(self) -> dict[str, Any] | None:
-        if self.grid is None:
+        if not self.tunings:
             return None
-        methods = {}
-        for m in METHODS:
-            ranked = {p: sorted((s for s in self.tuning if s.method == m),
-                                key=lambda s: -f1_score(self.tuning[s][p]))[:10]
-                      for p in self.protocols}
-            methods[m] = {
-                "name": METHOD_NAMES[m],
-                "setting": {p: self.baseline_setting(m, p).to_json() for p in self.protocols},
-                "tuning_totals": {p: _summary(self.tuning[self.baseline_setting(m, p)][p])
-                                  for p in self.protocols},
-                "top_tuning_settings": {p: [{**s.to_json(), **_summary(self.tuning[s][p])}
-                                            for s in ranked[p]] for p in self.protocols},
-            }
         return {
             "stronger": {p: self.stronger_baseline(p) for p in self.protocols},
             "method": "crop (the pipeline's roi_min/roi_max, if set), floor and wall removal "
                       "(fpcc_ros.baseline), then Euclidean clustering or DBSCAN, clusters under "
-                      "a minimum size dropped",
+                      "a minimum size dropped; tuned per part",
             "plane_tolerance": "5% of part_radius, clipped to 2-10 mm",
-            "tune_scenes": list(self.tune_scenes),
             "selection": SELECTION_RULE,
-            "grid": self.grid.to_json(),
-            "methods": methods,
+            "parts": {part: self._tuning_json(t) for part, t in self.tunings.items()},
         }
+
+    def _tuning_json(self, tuning: PartTuning) -> dict[str, Any]:
+        methods = {}
+        for m in METHODS:
+            chosen = {p: tuning.chosen[m][p] for p in self.protocols}
+            ranked = {p: sorted((s for s in tuning.totals if s.method == m),
+                                key=lambda s: -f1_score(tuning.totals[s][p]))[:10]
+                      for p in self.protocols}
+            methods[m] = {
+                "name": METHOD_NAMES[m],
+                "setting": {p: chosen[p].to_json() for p in self.protocols},
+                "tuning_totals": {p: _summary(tuning.totals[chosen[p]][p]) for p in self.protocols},
+                "top_tuning_settings": {p: [{**s.to_json(), **_summary(tuning.totals[s][p])}
+                                            for s in ranked[p]] for p in self.protocols},
+            }
+        return {"tune_scenes": list(tuning.scenes), "grid": tuning.grid.to_json(),
+                "methods": methods}
 
     @property
     def primary(self) -> str:
@@ -258,6 +282,8 @@ class EvalReport:
         title = f"per scene, {p} protocol"
         if setting is not None:
             title += f" (baseline: {setting.describe()})"
+        elif method is not None:
+            title += f" (baseline: {METHOD_NAMES[method]}, each part at its own tuned setting)"
         lines = [title, head, "-" * len(head)]
 
         def row(name, gt, vis, c, b, fms, bms) -> str:
@@ -266,7 +292,7 @@ class EvalReport:
                     f"{c.recall:>6.3f} {c.mucov:>6.3f} {c.mwcov:>6.3f} | {base} | {fms:>8} {bms:>8}")
 
         for s in self.scenes:
-            run = s.baseline_at(setting)
+            run = s.baseline_at(self.baseline_setting(method, p, s.part)) if method else None
             mark = "*" if s.scene in self.tune_scenes else ""
             lines.append(row(s.scene + mark, s.gt_instances, s.visible_gt, s.fpcc[p],
                              run.counts[p] if run else None, f"{s.fpcc_ms:.0f}",
@@ -311,40 +337,55 @@ class EvalReport:
         return "\n".join(lines)
 
     def _baseline_lines(self) -> list[str]:
-        """Which baseline is the stronger, both tuned settings with their scores and times."""
-        if self.grid is None:
+        """Which baseline is the stronger, the tuned settings with their scores and times."""
+        if not self.tunings:
             return ["baseline: not run"]
-        lines = ["baseline = the stronger on this set of: crop + floor/wall removal, then "
-                 + " or ".join(METHOD_NAMES[m] for m in METHODS) + ", each tuned on "
-                 + f"{len(self.tune_scenes)} scene(s) ({', '.join(self.tune_scenes)})"]
+        several = len(self.tunings) > 1
+        methods = " or ".join(METHOD_NAMES[m] for m in METHODS)
+        if several:
+            lines = [f"baseline = the stronger on this set of: crop + floor/wall removal, then "
+                     f"{methods}, each tuned per part ({len(self.tunings)} parts) on that "
+                     "part's first scenes:"]
+            lines.extend(f"  {_part_label(part)}: tuned on {len(t.scenes)} scene(s) "
+                         f"({', '.join(t.scenes)})" for part, t in self.tunings.items())
+        else:
+            lines = [f"baseline = the stronger on this set of: crop + floor/wall removal, then "
+                     f"{methods}, each tuned on {len(self.tune_scenes)} scene(s) "
+                     f"({', '.join(self.tune_scenes)})"]
         for p in self.protocols:
             stronger = self.stronger_baseline(p)
             for m in METHODS:
                 c = self.baseline_totals(p, m)
-                setting = self.baseline_setting(m, p)
-                runs = [r for s in self.scenes if (r := s.baseline_at(setting)) is not None]
+                runs = self.baseline_runs(m, p)
                 ms = _stats([r.ms for r in runs])["median"]
                 planes = _stats([r.planes_ms for r in runs])["median"]
-                lines.append(f"  {p:<8}{'*' if m == stronger else ' '} {setting.describe()}: "
+                name = METHOD_NAMES[m] if several else self.baseline_setting(m, p).describe()
+                lines.append(f"  {p:<8}{'*' if m == stronger else ' '} {name}: "
                              f"P {c.precision:.3f} R {c.recall:.3f} F1 {f1_score(c):.3f}, "
                              f"{ms:.0f} ms per scene (median; crop + planes {planes:.0f})")
-        g = self.grid
-        lines.append(f"  grid: distance {', '.join(f'{d * 1e3:g}' for d in g.distances)} mm; "
-                     f"min_samples {', '.join(map(str, g.min_samples))}; min cluster "
-                     f"{', '.join(map(str, g.min_cluster_sizes))} points; {SELECTION_RULE}")
+                if several:
+                    lines.extend(f"{'':14}{_part_label(part)}: {t.chosen[m][p].describe()}"
+                                 for part, t in self.tunings.items())
+        for part, t in self.tunings.items():
+            g = t.grid
+            lines.append(f"  grid{f' ({_part_label(part)})' if several else ''}: distance "
+                         f"{', '.join(f'{d * 1e3:g}' for d in g.distances)} mm; min_samples "
+                         f"{', '.join(map(str, g.min_samples))}; min cluster "
+                         f"{', '.join(map(str, g.min_cluster_sizes))} points")
+        lines.append(f"  selection: {SELECTION_RULE}")
         return lines
 
     def _scene_json(self, s: SceneResult) -> dict[str, Any]:
         baseline: dict[str, Any] = {}
         for m in METHODS:
             for p in self.protocols:
-                run = s.baseline_at(self.baseline_setting(m, p))
+                run = s.baseline_at(self.baseline_setting(m, p, s.part))
                 baseline.setdefault(m, {})[p] = {
                     **run.setting.to_json(), "predicted": run.predicted, "ms": run.ms,
                     "planes_ms": run.planes_ms,
                     **_summary(run.counts[p])} if run else None
         return {
-            "scene": s.scene, "points": s.points, "valid_points": s.valid_points,
+            "scene": s.scene, "part": s.part, "points": s.points, "valid_points": s.valid_points,
             "part_radius": s.part_radius, "visible_threshold": s.visible_threshold,
             "gt_instances": s.gt_instances, "visible_gt": s.visible_gt, "predicted": s.predicted,
             "fpcc": {p: _summary(s.fpcc[p]) for p in self.protocols},
@@ -375,10 +416,11 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     Each scene runs at its own ``part_radius`` unless ``fixed_part_radius`` (the user set one).
     ``columns`` names the columns of .txt scenes (see :func:`load_scene`). ``root``: scenes are
     named by their path below it (``part_a/scene_00000.npz``), else by their file name.
-    The baselines are tuned on the first ``tune_scenes`` evaluated scenes over ``tolerances``
-    (link distances, metres; None = :func:`default_distances` of the median part radius) x
-    ``min_samples`` (DBSCAN) x ``min_cluster_sizes``, then run at the chosen settings on every
-    scene; ``baseline`` False or an empty ``tolerances`` skips them. Scenes without any instance
+    The baselines are tuned per part (:func:`part_of`) on its first ``tune_scenes`` evaluated
+    scenes over ``tolerances`` (link distances, metres; None = :func:`default_distances` of the
+    part's median part radius) x ``min_samples`` (DBSCAN) x ``min_cluster_sizes``, then run at
+    the chosen settings on every scene of that part; ``baseline`` False or an empty
+    ``tolerances`` skips them. Scenes without any instance
     are skipped (listed in ``report.skipped`` and passed to ``warn``); :class:`EvalError` if
     none is left.
     """
@@ -392,23 +434,27 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
     if tune_scenes < 1:
         raise EvalError(f"baseline tuning scenes {tune_scenes} must be at least 1")
     radii = {path: _scene_radius(path, pipeline, fixed_part_radius) for path in paths}
-    grid = None
-    if baseline and (tolerances is None or len(tolerances)):
-        distances = default_distances(float(np.median(list(radii.values())))) \
-            if tolerances is None else tolerances
-        try:
-            grid = Grid(tuple(distances), tuple(min_samples), tuple(min_cluster_sizes))
-        except ValueError as exc:
-            raise EvalError(str(exc)) from exc
-    report = EvalReport(scenes=[], protocols=protocols, grid=grid,
+    parts = {path: part_of(path, root) for path in paths}
+    report = EvalReport(scenes=[], protocols=protocols,
                         model=_model_info(pipeline), config=_config_info(pipeline.config),
                         part_radius_source="fixed" if fixed_part_radius else "scene")
+    tuners: dict[str, _Tuner] = {}
+    if baseline and (tolerances is None or len(tolerances)):
+        for part in dict.fromkeys(parts.values()):
+            part_radii = [radii[path] for path in paths if parts[path] == part]
+            distances = default_distances(float(np.median(part_radii))) \
+                if tolerances is None else tolerances
+            try:
+                grid = Grid(tuple(distances), tuple(min_samples), tuple(min_cluster_sizes))
+            except ValueError as exc:
+                raise EvalError(str(exc)) from exc
+            report.tunings[part] = PartTuning(grid)
+            tuners[part] = _Tuner(report.tunings[part], tune_scenes, protocols)
     if oracle:
         from fpcc_ros.oracle import ORACLE_HEADS, oracle_for_scene
         report.model["oracle"] = "ground truth in place of the network" \
             if set(oracle) == set(ORACLE_HEADS) else \
             f"ground truth in place of the network's {' and '.join(oracle)}"
-    tuner = _Tuner(report, tune_scenes) if grid is not None else None
     for path in (progress or (lambda it: it))(paths):
         scene = load_scene(path, columns)
         if root is not None:   # sub-folders of one --data hold files of the same name
@@ -420,18 +466,43 @@ def evaluate(scenes: Sequence[Path | str], pipeline, tolerances: Sequence[float]
                 warn(f"skipping {path}: {reason}")
             continue
         scene_pipeline = _with_part_radius(pipeline, radii[path], path)
-        report.scenes.append(_evaluate_scene(
+        result = _evaluate_scene(
             scene, oracle_for_scene(scene_pipeline, path, oracle) if oracle else scene_pipeline,
-            protocols))
-        if tuner is not None:
-            tuner.add(report.scenes[-1], _BaselineInput.of(scene, scene_pipeline.config,
-                                                           protocols))
+            protocols)
+        result.part = parts[path]
+        report.scenes.append(result)
+        if tuners:
+            tuners[result.part].add(result, _BaselineInput.of(scene, scene_pipeline.config,
+                                                              protocols))
     if not report.scenes:
         raise EvalError(f"none of the {len(paths)} scenes has ground-truth instances "
                         "('instance' > 0); nothing to evaluate")
-    if tuner is not None:
-        tuner.finish()
+    for part, tuner in tuners.items():
+        if tuner.tuning.scenes:
+            tuner.finish()
+        else:   # every scene of this part was skipped
+            del report.tunings[part]
     return report
+
+
+def part_of(path: Path, root: Path | None = None) -> str:
+    """Which part a scene shows, for tuning the baselines: its ``part_name`` (scenes of
+    `fpcc synth`), else its folder below ``root`` ("" for scenes directly in it)."""
+    if path.suffix.lower() == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "part_name" in z.files:
+                    return str(np.asarray(z["part_name"]))
+        except Exception:  # noqa: BLE001 - load_scene reports an unreadable file
+            pass
+    if root is not None and path.is_relative_to(root):
+        folder = path.parent.relative_to(root).as_posix()
+        return "" if folder == "." else folder
+    return ""
+
+
+def _part_label(part: str) -> str:
+    return part or "(no part name)"
 
 
 def _evaluate_scene(scene: Scene, pipeline, protocols: tuple[str, ...]) -> SceneResult:
@@ -499,42 +570,43 @@ class _BaselineInput:
 
 
 class _Tuner:
-    """Sweeps the grid on the first ``count`` scenes, then runs the chosen settings on all."""
+    """Sweeps one part's grid on its first ``count`` scenes, then runs the chosen settings on
+    all of that part's scenes."""
 
-    def __init__(self, report: EvalReport, count: int):
-        self.report, self.count = report, count
+    def __init__(self, tuning: PartTuning, count: int, protocols: tuple[str, ...]):
+        self.tuning, self.count, self.protocols = tuning, count, protocols
         self.pending: list[tuple[SceneResult, _BaselineInput]] = []
 
     def add(self, result: SceneResult, data: _BaselineInput) -> None:
-        report = self.report
-        if report.chosen:
+        tuning = self.tuning
+        if tuning.chosen:
             self._run_chosen(result, data)
             return
         counts = sweep_scene(data.xyz, data.foreground, data.gt, data.finite, data.protocols,
-                             data.limit, report.grid)
+                             data.limit, tuning.grid)
         for setting, by_protocol in counts.items():
-            total = report.tuning.setdefault(setting, {p: InstanceCounts()
+            total = tuning.totals.setdefault(setting, {p: InstanceCounts()
                                                        for p in data.protocols})
             for p, c in by_protocol.items():
                 total[p] = total[p] + c
-        report.tune_scenes.append(result.scene)
+        tuning.scenes.append(result.scene)
         self.pending.append((result, data))
         if len(self.pending) >= self.count:
             self.finish()
 
     def finish(self) -> None:
         """Choose (if not yet) and run the choice on the tuning scenes held back."""
-        report = self.report
-        if not report.chosen:
+        tuning = self.tuning
+        if not tuning.chosen:
             for method in METHODS:
-                report.chosen[method] = {p: choose(report.tuning, method, p)
-                                         for p in report.protocols}
+                tuning.chosen[method] = {p: choose(tuning.totals, method, p)
+                                         for p in self.protocols}
         for result, data in self.pending:
             self._run_chosen(result, data)
         self.pending.clear()
 
     def _run_chosen(self, result: SceneResult, data: _BaselineInput) -> None:
-        settings = sorted({s for by_p in self.report.chosen.values() for s in by_p.values()})
+        settings = sorted({s for by_p in self.tuning.chosen.values() for s in by_p.values()})
         result.baseline.extend(data.run(s) for s in settings)
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from fpcc_ros.cli import main as cli_main
 from fpcc_ros.baseline_sweep import DEFAULT_TUNE_SCENES, Setting, default_distances
-from fpcc_ros.evaluation import EvalError, SceneError, evaluate, f1_score, load_scene
+from fpcc_ros.evaluation import EvalError, SceneError, evaluate, f1_score, load_scene, part_of
 from fpcc_ros.pipeline import PipelineConfig, SegmentationResult
 
 TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
@@ -100,7 +100,7 @@ def test_unorganized_scene_uses_300_points(tmp_path):
     report = evaluate([tmp_path / "u.npz"], GroundTruthPipeline([gt]), baseline=False)
     s = report.scenes[0]
     assert (s.visible_threshold, s.gt_instances, s.visible_gt) == (300, 4, 3)
-    assert report.grid is None and report.baseline_totals("visible") is None
+    assert report.tunings == {} and report.baseline_totals("visible") is None
     assert report.to_json()["totals"]["visible"]["baseline"] is None
 
 
@@ -111,13 +111,14 @@ def test_best_tolerance_is_the_one_that_scores_best(tmp_path):
     gt = write_scene(tmp_path / "a.npz", ROW, extra=FLOOR, organized=(48, 64))
     report = evaluate([tmp_path / "a.npz"], GroundTruthPipeline([gt]),
                       tolerances=[0.2, 0.003, 0.008], min_samples=[1], min_cluster_sizes=[50])
-    assert report.grid.distances == (0.003, 0.008, 0.2)
-    f1 = [f1_score(report.tuning[Setting("euclidean", t, 1, 50)]["paper"])
-          for t in report.grid.distances]
+    tuning = report.tunings[""]
+    assert tuning.grid.distances == (0.003, 0.008, 0.2)
+    f1 = [f1_score(tuning.totals[Setting("euclidean", t, 1, 50)]["paper"])
+          for t in tuning.grid.distances]
     assert f1 == [0.0, 1.0, 0.0]
     chosen = {p: report.baseline_setting("euclidean", p).distance for p in ("paper", "visible")}
     assert chosen == {"paper": 0.008, "visible": 0.008}
-    data = report.to_json()["baseline"]["methods"]["euclidean"]
+    data = report.to_json()["baseline"]["parts"][""]["methods"]["euclidean"]
     assert data["setting"]["visible"] == {"method": "euclidean", "distance_m": 0.008,
                                           "min_cluster_size": 50}
     assert [r.predicted for r in report.scenes[0].baseline] == [3, 3]   # euclidean, dbscan
@@ -136,8 +137,8 @@ def test_best_tolerance_uses_counts_summed_over_scenes(tmp_path):
     # 6 mm: a 3/3 correct, b 2/2 correct -> TP 5, pred 5, GT 5 (F1 1)
     # 8 mm: a 3/3 correct; b one cluster with IoU exactly 1/2 to each cube (>= 0.5: one match)
     #       -> TP 4, pred 4, GT 5 (F1 8/9)
-    totals = {t: report.tuning[Setting("euclidean", t, 1, 50)]["paper"]
-              for t in report.grid.distances}
+    totals = {t: report.tunings[""].totals[Setting("euclidean", t, 1, 50)]["paper"]
+              for t in report.tunings[""].grid.distances}
     assert (totals[0.006].true_positives, totals[0.006].predictions) == (5, 5)
     assert (totals[0.008].true_positives, totals[0.008].predictions) == (4, 4)
     assert f1_score(totals[0.008]) == pytest.approx(8 / 9)
@@ -208,6 +209,46 @@ def test_baselines_are_tuned_on_the_first_scenes_only(tmp_path):
     # summed over both scenes: TP 4 (all on a), predictions 4, ground truths 8
     assert f1_score(report.baseline_totals("paper", "dbscan")) == pytest.approx(2 * 4 / (4 + 8))
     assert report.to_json()["scenes"][1]["tuning_scene"] is False
+
+
+def test_each_part_gets_its_own_tuned_baselines(tmp_path):
+    """Scenes of two parts, a folder each as `fpcc eval --data` reads a multi-part set: b's
+    cubes (10 mm scan spacing) link only at 12 mm, where a's parts A and B (8 mm apart) merge.
+    One tuning for the whole set, on its first scene, found none of b's cubes (the test above);
+    each part tuned on its own first scene finds every part of both."""
+    for folder in ("part_a", "part_b"):
+        (tmp_path / folder).mkdir()
+    gt_a = _bridge_scene(tmp_path / "part_a" / "a.npz")
+    cubes = [grid((x, 0.05, 1.02), (x + 0.04, 0.09, 1.06), 0.01) for x in (0.0, 0.1, 0.2, 0.3)]
+    gt_b = write_scene(tmp_path / "part_b" / "b.npz", cubes, extra=FLOOR)
+    report = evaluate([tmp_path / "part_a" / "a.npz", tmp_path / "part_b" / "b.npz"],
+                      GroundTruthPipeline([gt_a, gt_b]), min_samples=[1, 5, 20], tune_scenes=1,
+                      root=tmp_path, **{**GRID, "tolerances": [0.003, 0.006, 0.012]})
+    assert list(report.tunings) == ["part_a", "part_b"]
+    assert report.tune_scenes == ["part_a/a.npz", "part_b/b.npz"]
+    assert report.baseline_setting("dbscan", "paper", "part_a").distance == 0.006
+    assert report.baseline_setting("dbscan", "paper", "part_b").distance == 0.012
+    assert report.baseline_setting("dbscan", "paper") is None   # several parts: name one
+    on_b = report.scenes[1].baseline_at(report.baseline_setting("dbscan", "paper", "part_b"))
+    assert on_b.counts["paper"].true_positives == 4
+    assert f1_score(report.baseline_totals("paper", "dbscan")) == 1.0   # 4 of a + 4 of b
+    data = report.to_json()
+    assert data["scenes"][1]["part"] == "part_b" and data["scenes"][1]["tuning_scene"] is True
+    assert data["baseline"]["parts"]["part_b"]["methods"]["dbscan"]["setting"]["paper"][
+        "distance_m"] == 0.012
+    assert "each tuned per part (2 parts)" in report.summary()
+    assert "part_b: DBSCAN, eps 12 mm" in report.summary()
+
+
+def test_a_scene_names_its_part_else_its_folder_does(tmp_path):
+    (tmp_path / "sub").mkdir()
+    write_scene(tmp_path / "sub" / "named.npz", ROW, part_name="gear_shaft")
+    write_scene(tmp_path / "sub" / "plain.npz", ROW)
+    write_scene(tmp_path / "top.npz", ROW)
+    assert part_of(tmp_path / "sub" / "named.npz", tmp_path) == "gear_shaft"
+    assert part_of(tmp_path / "sub" / "plain.npz", tmp_path) == "sub"
+    assert part_of(tmp_path / "top.npz", tmp_path) == ""
+    assert part_of(tmp_path / "sub" / "plain.npz") == ""   # no root: one group
 
 
 def test_tuning_scene_count_must_be_positive(tmp_path):
@@ -286,9 +327,9 @@ def test_command_end_to_end(tmp_path, capsys):
     assert report["protocols"] == ["paper", "visible"]
     assert [s["scene"] for s in report["scenes"]] == ["s1.npz", "s2.npz"]
     assert report["totals"]["visible"]["fpcc"]["ground_truths"] == 5
-    euclid = report["baseline"]["methods"]["euclidean"]["setting"]["visible"]
+    euclid = report["baseline"]["parts"][""]["methods"]["euclidean"]["setting"]["visible"]
     assert euclid["distance_m"] == 0.008
-    assert report["baseline"]["tune_scenes"] == ["s1.npz", "s2.npz"]   # both, of 3 by default
+    assert report["baseline"]["parts"][""]["tune_scenes"] == ["s1.npz", "s2.npz"]   # of 3
     assert report["totals"]["visible"]["baseline"]["precision"] == 1.0
     assert {"euclidean", "dbscan"} <= set(report["totals"]["visible"])
     assert "tuned on 2 scene(s) (s1.npz, s2.npz)" in out and DEFAULT_TUNE_SCENES == 3

@@ -49,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="minimum cluster sizes to sweep for both baselines, input points "
                         "(default: 1 25 50 100 200 300 400 600 800)")
     parser.add_argument("--baseline-tune", type=positive_int, default=3,
-                        metavar="N", help="tune the baselines on the first N scenes, then run "
-                        "the chosen settings on all (default: %(default)s)")
+                        metavar="N", help="tune the baselines on the first N scenes of each "
+                        "part (a scene's part_name, else its sub-folder), then run each part's "
+                        "settings on all its scenes (default: %(default)s)")
     parser.add_argument("--no-baseline", action="store_true", help="evaluate FPCC only")
     oracle = parser.add_mutually_exclusive_group()
     oracle.add_argument("--oracle-embeddings", action="store_true",
