@@ -183,9 +183,10 @@ class EvalReport:
         tuning = self.tunings.get(part) if part is not None else None
         return tuning.chosen.get(method, {}).get(protocol) if tuning else None
 
-    def baseline_runs(self, method: str, protocol: str) -> list[BaselineRun]:
-        """``method`` on every scene at its part's tuned setting."""
-        return [r for s in self.scenes
+    def baseline_runs(self, method: str, protocol: str, part: str | None = None
+                      ) -> list[BaselineRun]:
+        """``method`` on every scene (of ``part``, if given) at its part's tuned setting."""
+        return [r for s in self.scenes if part is None or s.part == part
                 if (r := s.baseline_at(self.baseline_setting(method, protocol, s.part)))]
 
     def baseline_totals(self, protocol: str, method: str | None = None) -> InstanceCounts | None:
@@ -364,7 +365,7 @@ class EvalReport:
                              f"P {c.precision:.3f} R {c.recall:.3f} F1 {f1_score(c):.3f}, "
                              f"{ms:.0f} ms per scene (median; crop + planes {planes:.0f})")
                 if several:
-                    lines.extend(f"{'':14}{_part_label(part)}: {t.chosen[m][p].describe()}"
+                    lines.extend(self._part_line(part, t.chosen[m][p], p)
                                  for part, t in self.tunings.items())
         for part, t in self.tunings.items():
             g = t.grid
@@ -374,6 +375,14 @@ class EvalReport:
                          f"{', '.join(map(str, g.min_cluster_sizes))} points")
         lines.append(f"  selection: {SELECTION_RULE}")
         return lines
+
+    def _part_line(self, part: str, setting: Setting, protocol: str) -> str:
+        """One part's setting with its own figures and FPCC's on the same scenes."""
+        base = sum((r.counts[protocol] for r in self.baseline_runs(setting.method, protocol, part)),
+                   InstanceCounts())
+        fpcc = sum((s.fpcc[protocol] for s in self.scenes if s.part == part), InstanceCounts())
+        return (f"{'':14}{_part_label(part)}: {setting.describe()}: P {base.precision:.3f} "
+                f"R {base.recall:.3f} F1 {f1_score(base):.3f} (FPCC F1 {f1_score(fpcc):.3f})")
 
     def _scene_json(self, s: SceneResult) -> dict[str, Any]:
         baseline: dict[str, Any] = {}

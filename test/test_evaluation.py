@@ -237,7 +237,8 @@ def test_each_part_gets_its_own_tuned_baselines(tmp_path):
     assert data["baseline"]["parts"]["part_b"]["methods"]["dbscan"]["setting"]["paper"][
         "distance_m"] == 0.012
     assert "each tuned per part (2 parts)" in report.summary()
-    assert "part_b: DBSCAN, eps 12 mm" in report.summary()
+    assert "part_b: DBSCAN, eps 12 mm, min_samples 1, min cluster 1: P 1.000 R 1.000 F1 1.000 " \
+           "(FPCC F1 1.000)" in report.summary()
 
 
 def test_a_scene_names_its_part_else_its_folder_does(tmp_path):
