@@ -1,4 +1,5 @@
 """calibrate(): every (θ, gate, γ) combination is scored on the same scenes with its own settings."""
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ from fpcc_ros.onnx_model import FpccModel
 from test_evaluation import FLOOR, patch, write_scene
 
 TINY_MODEL = Path(__file__).resolve().parent / "data" / "tiny_fpcc.onnx"
+TINY_CARD_VOXEL = json.loads(TINY_MODEL.with_suffix(".json").read_text())["voxel_factor"]
 # three parts of 21 x 21 points: above the visible protocol's 300-point floor for unorganized scenes
 ROW = [patch(0.0, 0.05, 0.98, step=0.0025, size=0.05), patch(0.065, 0.05, 0.97, step=0.0025, size=0.05),
        patch(0.13, 0.05, 0.985, step=0.0025, size=0.05)]
@@ -253,12 +255,51 @@ def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
     assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
 
 
+def test_refine_sweeps_voxel_factors_at_the_best_settings(tmp_path):
+    """The voxel pass copies every setting of the best row, whichever its clustering, changes
+    only the voxel factor (skipping the one tried) and scores each on the scenes."""
+    from fpcc_ros.calibrate import CalibrationRow, refine_voxel_factor
+    from fpcc_ros.metrics import InstanceCounts
+
+    scene = tmp_path / "a.npz"
+    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
+    model = FpccModel(TINY_MODEL, threads=1)
+    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(4, 10, 10), clustering="paper"),
+            CalibrationRow(0.5, 0.75, InstanceCounts(8, 10, 10), screening_factor=0.7,
+                           center_merge=0.5, center_prototype=0.3, voxel_factor=0.1,
+                           clustering="connected", fragment_eps=0.004, fragment_density=5,
+                           fragment_join=1.2, fragment_crease=60.0)]
+    rows = refine_voxel_factor(model, [scene], grid, "part-mean", factors=(0.1, 0.07, 0.06))
+    assert rows[:2] == grid
+    added = rows[2:]
+    assert sorted(r.voxel_factor for r in added) == [0.06, 0.07]
+    for r in added:
+        assert (r.clustering, r.score_threshold, r.feature_gate, r.screening_factor,
+                r.center_merge, r.center_prototype, r.fragment_eps, r.fragment_density,
+                r.fragment_join, r.fragment_crease) == ("connected", 0.5, 0.75, 0.7, 0.5, 0.3,
+                                                        0.004, 5, 1.2, 60.0)
+        assert r.counts.ground_truths == 3   # scored on the scene, not copied
+    # only the factor already tried: nothing to add
+    assert refine_voxel_factor(model, [scene], grid, "part-mean", factors=(0.1,)) == grid
+
+
+def test_cli_refines_the_voxel_factor_unless_factors_are_given(table_of_one_setting):
+    from fpcc_ros.calibrate import REFINE_VOXEL_FACTORS
+
+    def factors_tried(*extra: str) -> set[float]:
+        return {float(row[5]) for row in table_of_one_setting(*extra)}
+
+    assert factors_tried() == set(REFINE_VOXEL_FACTORS) | {TINY_CARD_VOXEL}
+    assert factors_tried("--voxel-factors", "0.12") == {0.12}
+
+
 def test_cli_refines_the_fragment_radius_unless_radii_are_given(table_of_one_setting):
     from fpcc_ros.calibrate import REFINE_FRAGMENT_EPS
 
     def radii_tried(*extra: str) -> list[float]:
+        # at the card's voxel: the voxel pass adds rows at the best radius only
         return sorted(float(row[7]) for row in table_of_one_setting(*extra)
-                      if row[6] == "connected")
+                      if row[6] == "connected" and float(row[5]) == TINY_CARD_VOXEL)
 
     assert radii_tried() == [e * 1e3 for e in REFINE_FRAGMENT_EPS]   # the card's 6 mm among them
     assert radii_tried("--fragment-eps", "0.008") == [8.0]
