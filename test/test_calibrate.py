@@ -222,6 +222,14 @@ def test_cli_tries_both_clusterings_unless_told(table_of_one_setting):
     assert {row[6] for row in table_of_one_setting("--clusterings", "paper")} == {"paper"}
 
 
+def _assert_scored_at(rows, **settings) -> None:
+    """Each of a refine pass's ``rows`` has exactly these settings and was scored on the one
+    three-part scene (its counts were not copied from the row it refines)."""
+    for r in rows:
+        assert {name: getattr(r, name) for name in settings} == settings
+        assert r.counts.ground_truths == 3
+
+
 def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
     """The second pass copies every setting of the best *connected* row (not the best row
     overall, here a paper one) and changes only the fragment radius, skipping the one tried."""
@@ -246,11 +254,9 @@ def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
     assert rows[:4] == grid
     added = rows[4:]
     assert sorted(r.fragment_eps for r in added) == [0.004, 0.02]
-    for r in added:
-        assert (r.clustering, r.score_threshold, r.feature_gate, r.screening_factor,
-                r.center_merge, r.center_prototype, r.fragment_density, r.fragment_join,
-                r.fragment_crease) == ("connected", 0.5, 1.0, 0.7, 0.5, 0.3, 5, 1.2, 60.0)
-        assert r.counts.ground_truths == 3   # scored on the scene, not copied
+    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=1.0,
+                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
+                      fragment_density=5, fragment_join=1.2, fragment_crease=60.0)
     # nothing connected: nothing to refine
     assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
 
@@ -273,12 +279,10 @@ def test_refine_sweeps_voxel_factors_at_the_best_settings(tmp_path):
     assert rows[:2] == grid
     added = rows[2:]
     assert sorted(r.voxel_factor for r in added) == [0.06, 0.07]
-    for r in added:
-        assert (r.clustering, r.score_threshold, r.feature_gate, r.screening_factor,
-                r.center_merge, r.center_prototype, r.fragment_eps, r.fragment_density,
-                r.fragment_join, r.fragment_crease) == ("connected", 0.5, 0.75, 0.7, 0.5, 0.3,
-                                                        0.004, 5, 1.2, 60.0)
-        assert r.counts.ground_truths == 3   # scored on the scene, not copied
+    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=0.75,
+                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
+                      fragment_eps=0.004, fragment_density=5, fragment_join=1.2,
+                      fragment_crease=60.0)
     # only the factor already tried: nothing to add
     assert refine_voxel_factor(model, [scene], grid, "part-mean", factors=(0.1,)) == grid
 
