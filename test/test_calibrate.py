@@ -261,6 +261,45 @@ def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
     assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
 
 
+def test_refine_sweeps_fragment_joins_at_the_best_connected_settings(tmp_path):
+    """The join pass copies every setting of the best connected row (here not the best row
+    overall) and changes only the join, skipping the one tried."""
+    from fpcc_ros.calibrate import CalibrationRow, refine_fragment_join
+    from fpcc_ros.metrics import InstanceCounts
+
+    scene = tmp_path / "a.npz"
+    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
+    model = FpccModel(TINY_MODEL, threads=1)
+    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(9, 10, 10), clustering="paper"),
+            CalibrationRow(0.5, 0.75, InstanceCounts(7, 10, 10), screening_factor=0.7,
+                           center_merge=0.5, center_prototype=0.3, voxel_factor=0.08,
+                           clustering="connected", fragment_eps=0.004, fragment_density=5,
+                           fragment_join=2.0, fragment_crease=60.0),
+            CalibrationRow(0.4, 1.0, InstanceCounts(5, 10, 10), clustering="connected",
+                           fragment_join=3.0)]
+    rows = refine_fragment_join(model, [scene], grid, "part-mean", joins=(1.2, 2.0, 3.0))
+    assert rows[:3] == grid
+    added = rows[3:]
+    assert sorted(r.fragment_join for r in added) == [1.2, 3.0]
+    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=0.75,
+                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
+                      voxel_factor=0.08, fragment_eps=0.004, fragment_density=5,
+                      fragment_crease=60.0)
+    # nothing connected: nothing to refine
+    assert refine_fragment_join(model, [scene], grid[:1], "part-mean") == grid[:1]
+
+
+def test_cli_refines_the_fragment_join_unless_joins_are_given(table_of_one_setting):
+    from fpcc_ros.calibrate import REFINE_FRAGMENT_JOINS
+
+    def joins_tried(*extra: str) -> set[float]:
+        return {float(row[10]) for row in table_of_one_setting(*extra) if row[6] == "connected"}
+
+    assert joins_tried() == set(REFINE_FRAGMENT_JOINS)   # the card's 2 among them
+    assert joins_tried("--fragment-joins", "1.5") == {1.5}
+    assert joins_tried("--clusterings", "paper") == set()
+
+
 def test_refine_sweeps_voxel_factors_at_the_best_settings(tmp_path):
     """The voxel pass copies every setting of the best row, whichever its clustering, changes
     only the voxel factor (skipping the one tried) and scores each on the scenes."""
@@ -299,11 +338,13 @@ def test_cli_refines_the_voxel_factor_unless_factors_are_given(table_of_one_sett
 
 def test_cli_refines_the_fragment_radius_unless_radii_are_given(table_of_one_setting):
     from fpcc_ros.calibrate import REFINE_FRAGMENT_EPS
+    card_join = FpccModel(TINY_MODEL, threads=1).card.fragment_join
 
     def radii_tried(*extra: str) -> list[float]:
-        # at the card's voxel: the voxel pass adds rows at the best radius only
+        # at the card's voxel and join: their passes add rows at the best radius only
         return sorted(float(row[7]) for row in table_of_one_setting(*extra)
-                      if row[6] == "connected" and float(row[5]) == TINY_CARD_VOXEL)
+                      if row[6] == "connected" and float(row[5]) == TINY_CARD_VOXEL
+                      and float(row[10]) == card_join)
 
     assert radii_tried() == [e * 1e3 for e in REFINE_FRAGMENT_EPS]   # the card's 6 mm among them
     assert radii_tried("--fragment-eps", "0.008") == [8.0]

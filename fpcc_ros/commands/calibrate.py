@@ -56,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="connected: smallest instance values, input points")
     parser.add_argument("--fragment-joins", type=float, nargs="+", default=None, metavar="J",
                         help="connected: a center's fragments join when together within a box "
-                        "of this diagonal, part radii (2 = a whole part; the shipped network "
-                        "wants 1.2)")
+                        "of this diagonal, part radii, to sweep in the grid (default: the "
+                        "card's in the grid, then 1.2 2 3 at the best connected settings: the "
+                        "shipped network wants 1.2, a ring-screw fine-tune 3)")
     parser.add_argument("--fragment-creases", type=float, nargs="+", default=None, metavar="C",
                         help="connected, organized clouds: concave-crease cut curvatures to "
                         "try, 1/m (0 = off; e.g. 0 60; default: the card's)")
@@ -73,9 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fpcc_ros.calibrate import (REFINE_FRAGMENT_EPS, REFINE_VOXEL_FACTORS, SWEPT_SETTINGS,
-                                    calibrate, refine_fragment_eps, refine_voxel_factor,
-                                    settings_on_grid_edge)
+    from fpcc_ros.calibrate import (REFINE_FRAGMENT_EPS, REFINE_FRAGMENT_JOINS,
+                                    REFINE_VOXEL_FACTORS, SWEPT_SETTINGS, calibrate,
+                                    refine_fragment_eps, refine_fragment_join,
+                                    refine_voxel_factor, settings_on_grid_edge)
     from fpcc_ros.model_card import ModelCardError, card_path_for
     from fpcc_ros.onnx_model import FpccModel, ModelLoadError
 
@@ -112,6 +114,10 @@ def run(args: argparse.Namespace) -> int:
         print("fragment_eps: " + " ".join(f"{e * 1e3:g}" for e in REFINE_FRAGMENT_EPS)
               + " mm at the best connected settings", file=sys.stderr)
         rows = refine_fragment_eps(model, scenes, rows, args.objective, progress=tqdm)
+    if args.fragment_joins is None and "connected" in args.clusterings:
+        print("fragment_join: " + " ".join(f"{j:g}" for j in REFINE_FRAGMENT_JOINS)
+              + " part radii at the best connected settings", file=sys.stderr)
+        rows = refine_fragment_join(model, scenes, rows, args.objective, progress=tqdm)
     if args.voxel_factors is None:
         print("voxel_factor: " + " ".join(f"{f:g}" for f in REFINE_VOXEL_FACTORS)
               + " at the best settings (finer: more network points, slower)", file=sys.stderr)
