@@ -33,8 +33,9 @@ fpcc train --data "$D/train" "$D/train2" --val "$D/val" --out "$WORK/runs/$NAME"
 fpcc export "$WORK/runs/$NAME/checkpoint_last.pt" --out "$WORK/models/$NAME.onnx" --name "$NAME"
 # concave creases cut or not (the exported card starts with them off): on the gear shaft, test
 # piles F1 0.659 with them cut at 120 against 0.636 uncut at the calibrated settings (2026-12-05)
-# it ends by trying finer voxels at the best settings (0.1 -> 0.07 d_max on the gear shaft:
-# test piles F1 0.752 -> 0.784 at 1.8x the time, 2026-12-07)
+# it ends by trying other joins and finer voxels at the best settings (ring screw: join 2 -> 3,
+# test piles F1 0.764 -> 0.788, 2026-12-08; gear shaft: voxel 0.1 -> 0.07 d_max, 0.752 -> 0.784
+# at 1.8x the time, 2026-12-07)
 fpcc calibrate "$WORK/models/$NAME.onnx" --data "$D/val" --fragment-creases 0 120 --write
 if [ -n "$TEST" ]; then
   fpcc eval --data "$TEST" --model "$WORK/models/$NAME.onnx" --protocol both \
