@@ -222,69 +222,82 @@ def test_cli_tries_both_clusterings_unless_told(table_of_one_setting):
     assert {row[6] for row in table_of_one_setting("--clusterings", "paper")} == {"paper"}
 
 
-def _assert_scored_at(rows, **settings) -> None:
-    """Each of a refine pass's ``rows`` has exactly these settings and was scored on the one
-    three-part scene (its counts were not copied from the row it refines)."""
+# The row each refine pass starts from in the tests below: every setting away from its default,
+# so a setting the pass failed to copy shows.
+REFINED_FROM = dict(score_threshold=0.5, feature_gate=0.75, screening_factor=0.7,
+                    center_merge=0.5, center_prototype=0.3, voxel_factor=0.1,
+                    clustering="connected", fragment_eps=0.004, fragment_density=5,
+                    fragment_join=1.2, fragment_crease=60.0)
+
+
+def _row_at(hits: int, **changes):
+    """A grid row at :data:`REFINED_FROM` but ``changes``, with ``hits`` of 10 parts found."""
+    from fpcc_ros.calibrate import CalibrationRow
+    from fpcc_ros.metrics import InstanceCounts
+
+    settings = {**REFINED_FROM, **changes}
+    return CalibrationRow(settings.pop("score_threshold"), settings.pop("feature_gate"),
+                          InstanceCounts(hits, 10, 10), **settings)
+
+
+def _assert_refined_from(rows, best, changed: str) -> None:
+    """Each of a refine pass's ``rows`` has every swept setting of ``best`` but ``changed`` and
+    was scored on the one three-part scene (its counts were not copied from ``best``)."""
+    from fpcc_ros.calibrate import SWEPT_SETTINGS
+
+    expected = {name: getattr(best, name) for name, _ in SWEPT_SETTINGS if name != changed}
     for r in rows:
-        assert {name: getattr(r, name) for name in settings} == settings
+        assert {name: getattr(r, name) for name in expected} == expected
         assert r.counts.ground_truths == 3
 
 
-def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(tmp_path):
+@pytest.fixture
+def scene_and_model(tmp_path):
+    """The one three-part scene the refine passes score, and the tiny model."""
+    scene = tmp_path / "a.npz"
+    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
+    return scene, FpccModel(TINY_MODEL, threads=1)
+
+
+def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(scene_and_model):
     """The second pass copies every setting of the best *connected* row (not the best row
     overall, here a paper one) and changes only the fragment radius, skipping the one tried."""
     from fpcc_ros.calibrate import CalibrationRow, refine_fragment_eps
     from fpcc_ros.metrics import InstanceCounts
 
-    scene = tmp_path / "a.npz"
-    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
-    model = FpccModel(TINY_MODEL, threads=1)
-
-    def row(f1_hits: int, clustering: str, threshold: float, **settings) -> CalibrationRow:
-        return CalibrationRow(threshold, 1.0, InstanceCounts(f1_hits, 10, 10),
-                              clustering=clustering, fragment_eps=0.006, **settings)
-
-    grid = [row(9, "paper", 0.3),
-            row(4, "connected", 0.3, screening_factor=0.5),
-            row(7, "connected", 0.5, screening_factor=0.7, center_merge=0.5,
-                center_prototype=0.3, fragment_density=5, fragment_join=1.2,
-                fragment_crease=60.0),
-            row(6, "connected", 0.4)]
+    scene, model = scene_and_model
+    best = _row_at(7, feature_gate=1.0, fragment_eps=0.006)
+    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(9, 10, 10), clustering="paper"),
+            CalibrationRow(0.3, 1.0, InstanceCounts(4, 10, 10), screening_factor=0.5,
+                           clustering="connected"),
+            best,
+            CalibrationRow(0.4, 1.0, InstanceCounts(6, 10, 10), clustering="connected")]
     rows = refine_fragment_eps(model, [scene], grid, "part-mean", eps_values=(0.004, 0.006, 0.02))
     assert rows[:4] == grid
     added = rows[4:]
     assert sorted(r.fragment_eps for r in added) == [0.004, 0.02]
-    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=1.0,
-                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
-                      fragment_density=5, fragment_join=1.2, fragment_crease=60.0)
+    _assert_refined_from(added, best, "fragment_eps")
     # nothing connected: nothing to refine
     assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
 
 
-def test_refine_sweeps_fragment_joins_at_the_best_connected_settings(tmp_path):
+def test_refine_sweeps_fragment_joins_at_the_best_connected_settings(scene_and_model):
     """The join pass copies every setting of the best connected row (here not the best row
     overall) and changes only the join, skipping the one tried."""
     from fpcc_ros.calibrate import CalibrationRow, refine_fragment_join
     from fpcc_ros.metrics import InstanceCounts
 
-    scene = tmp_path / "a.npz"
-    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
-    model = FpccModel(TINY_MODEL, threads=1)
+    scene, model = scene_and_model
+    best = _row_at(7, voxel_factor=0.08, fragment_join=2.0)
     grid = [CalibrationRow(0.3, 1.0, InstanceCounts(9, 10, 10), clustering="paper"),
-            CalibrationRow(0.5, 0.75, InstanceCounts(7, 10, 10), screening_factor=0.7,
-                           center_merge=0.5, center_prototype=0.3, voxel_factor=0.08,
-                           clustering="connected", fragment_eps=0.004, fragment_density=5,
-                           fragment_join=2.0, fragment_crease=60.0),
+            best,
             CalibrationRow(0.4, 1.0, InstanceCounts(5, 10, 10), clustering="connected",
                            fragment_join=3.0)]
     rows = refine_fragment_join(model, [scene], grid, "part-mean", joins=(1.2, 2.0, 3.0))
     assert rows[:3] == grid
     added = rows[3:]
     assert sorted(r.fragment_join for r in added) == [1.2, 3.0]
-    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=0.75,
-                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
-                      voxel_factor=0.08, fragment_eps=0.004, fragment_density=5,
-                      fragment_crease=60.0)
+    _assert_refined_from(added, best, "fragment_join")
     # nothing connected: nothing to refine
     assert refine_fragment_join(model, [scene], grid[:1], "part-mean") == grid[:1]
 
@@ -300,28 +313,20 @@ def test_cli_refines_the_fragment_join_unless_joins_are_given(table_of_one_setti
     assert joins_tried("--clusterings", "paper") == set()
 
 
-def test_refine_sweeps_voxel_factors_at_the_best_settings(tmp_path):
+def test_refine_sweeps_voxel_factors_at_the_best_settings(scene_and_model):
     """The voxel pass copies every setting of the best row, whichever its clustering, changes
     only the voxel factor (skipping the one tried) and scores each on the scenes."""
     from fpcc_ros.calibrate import CalibrationRow, refine_voxel_factor
     from fpcc_ros.metrics import InstanceCounts
 
-    scene = tmp_path / "a.npz"
-    write_scene(scene, ROW, extra=FLOOR, part_radius=0.05)
-    model = FpccModel(TINY_MODEL, threads=1)
-    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(4, 10, 10), clustering="paper"),
-            CalibrationRow(0.5, 0.75, InstanceCounts(8, 10, 10), screening_factor=0.7,
-                           center_merge=0.5, center_prototype=0.3, voxel_factor=0.1,
-                           clustering="connected", fragment_eps=0.004, fragment_density=5,
-                           fragment_join=1.2, fragment_crease=60.0)]
+    scene, model = scene_and_model
+    best = _row_at(8)
+    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(4, 10, 10), clustering="paper"), best]
     rows = refine_voxel_factor(model, [scene], grid, "part-mean", factors=(0.1, 0.07, 0.06))
     assert rows[:2] == grid
     added = rows[2:]
     assert sorted(r.voxel_factor for r in added) == [0.06, 0.07]
-    _assert_scored_at(added, clustering="connected", score_threshold=0.5, feature_gate=0.75,
-                      screening_factor=0.7, center_merge=0.5, center_prototype=0.3,
-                      fragment_eps=0.004, fragment_density=5, fragment_join=1.2,
-                      fragment_crease=60.0)
+    _assert_refined_from(added, best, "voxel_factor")
     # only the factor already tried: nothing to add
     assert refine_voxel_factor(model, [scene], grid, "part-mean", factors=(0.1,)) == grid
 
