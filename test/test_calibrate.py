@@ -259,47 +259,35 @@ def scene_and_model(tmp_path):
     return scene, FpccModel(TINY_MODEL, threads=1)
 
 
-def test_refine_sweeps_fragment_radii_at_the_best_connected_settings(scene_and_model):
-    """The second pass copies every setting of the best *connected* row (not the best row
-    overall, here a paper one) and changes only the fragment radius, skipping the one tried."""
-    from fpcc_ros.calibrate import CalibrationRow, refine_fragment_eps
+@pytest.mark.parametrize("refine, changed, values, tried, expected", [
+    ("refine_fragment_eps", "fragment_eps", {"eps_values": (0.004, 0.006, 0.02)}, 0.006,
+     [0.004, 0.02]),
+    ("refine_fragment_join", "fragment_join", {"joins": (1.2, 2.0, 3.0)}, 2.0, [1.2, 3.0]),
+])
+def test_refine_sweeps_one_setting_at_the_best_connected_settings(scene_and_model, refine, changed,
+                                                                  values, tried, expected):
+    """The radius and join passes copy every setting of the best *connected* row (not the best
+    row overall, here a paper one) and change only their own setting, skipping the one tried."""
+    import fpcc_ros.calibrate as calibrate
+    from fpcc_ros.calibrate import CalibrationRow
     from fpcc_ros.metrics import InstanceCounts
 
+    refine_pass = getattr(calibrate, refine)
     scene, model = scene_and_model
-    best = _row_at(7, feature_gate=1.0, fragment_eps=0.006)
+    best = _row_at(7, feature_gate=1.0, voxel_factor=0.08, **{changed: tried})
     grid = [CalibrationRow(0.3, 1.0, InstanceCounts(9, 10, 10), clustering="paper"),
             CalibrationRow(0.3, 1.0, InstanceCounts(4, 10, 10), screening_factor=0.5,
                            clustering="connected"),
             best,
-            CalibrationRow(0.4, 1.0, InstanceCounts(6, 10, 10), clustering="connected")]
-    rows = refine_fragment_eps(model, [scene], grid, "part-mean", eps_values=(0.004, 0.006, 0.02))
+            CalibrationRow(0.4, 1.0, InstanceCounts(6, 10, 10), clustering="connected",
+                           fragment_join=3.0)]
+    rows = refine_pass(model, [scene], grid, "part-mean", **values)
     assert rows[:4] == grid
     added = rows[4:]
-    assert sorted(r.fragment_eps for r in added) == [0.004, 0.02]
-    _assert_refined_from(added, best, "fragment_eps")
+    assert sorted(getattr(r, changed) for r in added) == expected
+    _assert_refined_from(added, best, changed)
     # nothing connected: nothing to refine
-    assert refine_fragment_eps(model, [scene], grid[:1], "part-mean") == grid[:1]
-
-
-def test_refine_sweeps_fragment_joins_at_the_best_connected_settings(scene_and_model):
-    """The join pass copies every setting of the best connected row (here not the best row
-    overall) and changes only the join, skipping the one tried."""
-    from fpcc_ros.calibrate import CalibrationRow, refine_fragment_join
-    from fpcc_ros.metrics import InstanceCounts
-
-    scene, model = scene_and_model
-    best = _row_at(7, voxel_factor=0.08, fragment_join=2.0)
-    grid = [CalibrationRow(0.3, 1.0, InstanceCounts(9, 10, 10), clustering="paper"),
-            best,
-            CalibrationRow(0.4, 1.0, InstanceCounts(5, 10, 10), clustering="connected",
-                           fragment_join=3.0)]
-    rows = refine_fragment_join(model, [scene], grid, "part-mean", joins=(1.2, 2.0, 3.0))
-    assert rows[:3] == grid
-    added = rows[3:]
-    assert sorted(r.fragment_join for r in added) == [1.2, 3.0]
-    _assert_refined_from(added, best, "fragment_join")
-    # nothing connected: nothing to refine
-    assert refine_fragment_join(model, [scene], grid[:1], "part-mean") == grid[:1]
+    assert refine_pass(model, [scene], grid[:1], "part-mean") == grid[:1]
 
 
 def test_cli_refines_the_fragment_join_unless_joins_are_given(table_of_one_setting):
